@@ -1,0 +1,367 @@
+"""Configuration schema (one dataclass per stage), YAML loading and ``--set`` overrides.
+
+A config file is YAML whose top-level keys are the fields of :class:`Config`. Every key is
+checked against the schema: an unknown key or a value of the wrong type raises
+:class:`~torchfit.errors.ConfigError` naming the dotted key and the file. Overrides use dotted
+keys, ``--set solver.max_iter=50``; the value is parsed as YAML (``50`` is an int, ``[1, 2]`` a
+list, ``null`` None).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Union
+
+import yaml
+
+from torchfit.errors import ConfigError
+
+__all__ = [
+    "RunConfig",
+    "DataConfig",
+    "ModelConfig",
+    "SegmentationConfig",
+    "SolverConfig",
+    "StageConfig",
+    "FitConfig",
+    "OutputConfig",
+    "Config",
+    "load_config",
+    "config_from_dict",
+    "config_to_dict",
+    "apply_overrides",
+    "save_config",
+    "parse_yaml",
+]
+
+
+@dataclass
+class RunConfig:
+    """Where and how a run executes."""
+
+    name: str = "run"
+    out: str | None = None  # run folder; default runs/<name>
+    device: str = "cpu"
+    dtype: Literal["float32", "float64"] = "float64"
+    seed: int = 0
+    resume: bool = True  # skip subjects whose outputs are complete
+
+
+@dataclass
+class DataConfig:
+    """The dataset: a folder of subject folders, or a manifest file listing them."""
+
+    root: str | None = None
+    subjects: list[str] | None = None  # restrict to these subject folder names
+
+
+@dataclass
+class ModelConfig:
+    """The template body model."""
+
+    template: str = "mpeg4_full"  # a shipped template name or a path to a URDF file
+    scale_min: float = 0.4
+    scale_max: float = 1.9
+
+
+@dataclass
+class SegmentationConfig:
+    """HSL Mahalanobis background subtraction and clean-up (first paper, section 4)."""
+
+    threshold: float = 4.0  # Mahalanobis distance above which a pixel is the person
+    gamma: float = 0.3  # weight of lightness against the hue/saturation disc, in [0, 1]
+    min_background_frames: int = 5
+    background: Literal["frames", "temporal_median"] = "frames"
+    open_kernel: int = 3
+    close_kernel: int = 7
+    fill_holes: bool = True
+    distance: Literal["chamfer", "euclidean"] = "chamfer"
+
+
+@dataclass
+class SolverConfig:
+    """Levenberg–Marquardt options (see :class:`torchfit.solver.LMOptions`)."""
+
+    max_iter: int = 100
+    ftol: float = 1e-8
+    xtol: float = 1e-8
+    gtol: float = 1e-10
+    jacobian: Literal["autograd", "numeric"] = "autograd"
+
+
+@dataclass
+class StageConfig:
+    """One stage of the fit schedule."""
+
+    name: str = "all"
+    scales: list[str] = field(default_factory=lambda: ["all"])  # free scale groups
+    joints: bool = True  # optimise the per-pose free joint angles
+    root: bool = True  # optimise the per-pose floor translation and rotation
+    max_iter: int | None = None  # overrides solver.max_iter for this stage
+
+
+@dataclass
+class FitConfig:
+    """The fitting problem (first paper, sections 6–8)."""
+
+    stages: list[StageConfig] = field(
+        default_factory=lambda: [
+            StageConfig(name="legs_upper_body", scales=["legs", "upper_body"], joints=True),
+            StageConfig(name="all", scales=["all"], joints=True),
+        ]
+    )
+    poses: list[int] = field(default_factory=lambda: [1, 2, 3, 4, 5, 6])
+    initial_guess: Literal["template", "parts"] = "template"
+
+
+@dataclass
+class OutputConfig:
+    """What a run writes."""
+
+    overlays: bool = True
+    mesh_format: Literal["glb", "obj"] = "glb"
+    tensorboard: bool = True
+
+
+@dataclass
+class Config:
+    """The whole configuration of a tool run."""
+
+    run: RunConfig = field(default_factory=RunConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    fit: FitConfig = field(default_factory=FitConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+
+# --------------------------------------------------------------------------------------------
+# YAML: PyYAML follows YAML 1.1, where ``1e-3`` is a string; accept YAML 1.2 floats.
+
+
+class _Loader(yaml.SafeLoader):
+    pass
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(
+        r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+        |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+        |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+        |[-+]?\.(?:inf|Inf|INF)
+        |\.(?:nan|NaN|NAN))$""",
+        re.X,
+    ),
+    list("-+0123456789."),
+)
+
+
+def parse_yaml(text: str) -> Any:
+    """``yaml.safe_load`` that also reads ``1e-3`` as a float (YAML 1.2 numbers)."""
+    return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+
+
+# --------------------------------------------------------------------------------------------
+# Conversion with type checking
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _convert(value: Any, tp: Any, key: str, source: str) -> Any:
+    """Check ``value`` against the annotation ``tp`` and convert it (dicts to dataclasses)."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+
+    def fail(expected: str) -> ConfigError:
+        return ConfigError(
+            f"{source}: key '{key}' expects {expected}, got {type(value).__name__} {value!r}"
+        )
+
+    if tp is Any:
+        return value
+    if origin in (Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _convert(value, arg, key, source)
+            except ConfigError as exc:
+                errors.append(exc)
+        if len(errors) == 1:
+            raise errors[0]
+        raise fail(" or ".join(_type_name(a) for a in args))
+    if origin is Literal:
+        if value not in args:
+            raise ConfigError(f"{source}: key '{key}' must be one of {list(args)}, got {value!r}")
+        return value
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise fail(f"a mapping of {tp.__name__} fields")
+        return _dataclass_from_dict(tp, value, key, source)
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise fail(f"a list of {_type_name(args[0]) if args else 'values'}")
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise fail(f"a list of {len(args)} values")
+            return tuple(
+                _convert(v, a, f"{key}[{i}]", source)
+                for i, (v, a) in enumerate(zip(value, args, strict=True))
+            )
+        inner = args[0] if args else Any
+        out = [_convert(v, inner, f"{key}[{i}]", source) for i, v in enumerate(value)]
+        return tuple(out) if origin is tuple else out
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise fail("a mapping")
+        ktp, vtp = args if args else (Any, Any)
+        return {
+            _convert(k, ktp, f"{key}.{k}", source): _convert(v, vtp, f"{key}.{k}", source)
+            for k, v in value.items()
+        }
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise fail("a boolean (true/false)")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise fail("an integer")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise fail("a number")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise fail("a string")
+        return value
+    raise ConfigError(f"{source}: key '{key}' has an unsupported schema type {tp!r}")
+
+
+def _dataclass_from_dict(cls: type, data: dict, prefix: str, source: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = [k for k in data if k not in names]
+    if unknown:
+        where = f"{prefix}." if prefix else ""
+        raise ConfigError(
+            f"{source}: unknown key '{where}{unknown[0]}' (valid keys"
+            f"{' under ' + repr(prefix) if prefix else ''}: {', '.join(sorted(names))})"
+        )
+    kwargs = {
+        k: _convert(v, hints[k], f"{prefix}.{k}" if prefix else k, source) for k, v in data.items()
+    }
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict | None, source: str = "<dict>", schema: type = Config) -> Any:
+    """Build a config dataclass from a plain dict, checking every key and type.
+
+    Args:
+        data: nested mapping (as loaded from YAML); ``None`` gives the defaults.
+        source: name used in error messages (usually the file path).
+        schema: the dataclass to build (default :class:`Config`).
+
+    Raises:
+        ConfigError: naming the dotted key and ``source``.
+    """
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: the top level must be a mapping, got {type(data).__name__}")
+    return _dataclass_from_dict(schema, data, "", source)
+
+
+def config_to_dict(config: Any) -> dict:
+    """The plain-dict form of a config dataclass (tuples become lists), ready for YAML."""
+
+    def plain(v: Any) -> Any:
+        if isinstance(v, (list, tuple)):
+            return [plain(x) for x in v]
+        if isinstance(v, dict):
+            return {k: plain(x) for k, x in v.items()}
+        return v
+
+    return plain(dataclasses.asdict(config))
+
+
+def apply_overrides(data: dict, overrides: list[str], source: str = "--set") -> dict:
+    """Apply ``a.b.c=value`` overrides to a nested dict (values parsed as YAML).
+
+    Raises:
+        ConfigError: for an override without ``=`` or a value that is not valid YAML.
+    """
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"{source}: override {item!r} must look like key.sub=value")
+        key, raw = item.split("=", 1)
+        key = key.strip()
+        if not key:
+            raise ConfigError(f"{source}: override {item!r} has an empty key")
+        try:
+            value = parse_yaml(raw) if raw.strip() else ""
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{source}: value of '{key}' is not valid YAML: {exc}") from exc
+        node = data
+        parts = key.split(".")
+        for part in parts[:-1]:
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            if not isinstance(child, dict):
+                raise ConfigError(f"{source}: cannot set '{key}': '{part}' is not a mapping")
+            node = child
+        node[parts[-1]] = value
+    return data
+
+
+def load_config(
+    path: str | Path | None,
+    overrides: list[str] | None = None,
+    schema: type = Config,
+) -> Any:
+    """Load a YAML config file, apply ``--set`` overrides and check it against ``schema``.
+
+    Args:
+        path: the YAML file; ``None`` starts from the defaults.
+        overrides: ``["solver.max_iter=50", ...]``.
+        schema: the dataclass to build (default :class:`Config`).
+
+    Raises:
+        ConfigError: for a missing file, invalid YAML, an unknown key or a wrong type; the
+            message names the key and the file.
+    """
+    source = str(path) if path is not None else "<defaults>"
+    data: dict = {}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"config file not found: {path}")
+        try:
+            data = parse_yaml(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: invalid YAML: {exc}") from exc
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: the top level must be a mapping, got {type(data).__name__}")
+    if overrides:
+        apply_overrides(data, overrides)
+        source = f"{source} (with --set overrides)"
+    return config_from_dict(data, source, schema)
+
+
+def save_config(config: Any, path: str | Path) -> None:
+    """Write the resolved config as YAML."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(yaml.safe_dump(config_to_dict(config), sort_keys=False))

@@ -1,0 +1,71 @@
+"""Typed exceptions and the one shape-check helper.
+
+Every error raised for bad input from a caller subclasses :class:`TorchfitError` (itself a
+``ValueError``) and names the argument, what was expected and what was found.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+__all__ = [
+    "TorchfitError",
+    "ConfigError",
+    "ShapeError",
+    "DataError",
+    "CameraError",
+    "ModelError",
+    "SegmentationError",
+    "check_shape",
+]
+
+
+class TorchfitError(ValueError):
+    """Base class of all torchfit input errors."""
+
+
+class ConfigError(TorchfitError):
+    """A configuration file or override is invalid (unknown key, wrong type, bad YAML)."""
+
+
+class ShapeError(TorchfitError):
+    """A tensor argument has the wrong shape or dtype."""
+
+
+class DataError(TorchfitError):
+    """A dataset file is missing, unreadable or inconsistent."""
+
+
+class CameraError(TorchfitError):
+    """A camera description is invalid."""
+
+
+class ModelError(TorchfitError):
+    """A body model (URDF, meshes, parameter vector) is invalid."""
+
+
+class SegmentationError(TorchfitError):
+    """Segmentation failed for an image (no person found, size mismatch, …)."""
+
+
+def check_shape(name: str, tensor: torch.Tensor, shape: Sequence[int | str | None]) -> None:
+    """Check ``tensor.shape`` against a pattern.
+
+    Args:
+        name: argument name used in the error message.
+        tensor: the tensor to check.
+        shape: expected shape; an ``int`` must match exactly, a ``str`` or ``None`` matches any
+            size (strings are symbolic names used in the message, e.g. ``("B", "N", 3)``).
+
+    Raises:
+        ShapeError: naming ``name``, the expected pattern and the actual shape.
+    """
+    if not isinstance(tensor, torch.Tensor):
+        raise ShapeError(f"{name}: expected a torch.Tensor, got {type(tensor).__name__}")
+    pattern = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
+    if tensor.dim() != len(shape) or any(
+        isinstance(s, int) and tensor.shape[i] != s for i, s in enumerate(shape)
+    ):
+        raise ShapeError(f"{name}: expected shape {pattern}, got {tuple(tensor.shape)}")
