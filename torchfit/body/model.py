@@ -1,0 +1,217 @@
+"""The stateless, batched, differentiable body model.
+
+    scales (B, S, 3), joint_angles (B, Q), root_translation (B, 3), root_rotation (B, 3)
+        -> posed vertices (B, V, 3), segment origins (B, S, 3), rotations (B, S, 3, 3)
+
+Segment i with scale σ_i = (σx, σy, σz) scales its mesh in its own frame about its origin
+(the proximal joint centre) and moves its child joints with it: a child's origin is
+``p_child = p_i + R_i (σ_i ⊙ o_child)`` where ``o_child`` is the template offset in segment
+i's frame. The root segment's frame is placed at ``root_translation`` with the axis-angle
+``root_rotation`` (world frame, radians). Metres throughout; world frame z up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from torchfit.body.kinematics import SkeletonChain
+from torchfit.body.template import Template, load_template
+from torchfit.errors import ModelError, check_shape
+
+__all__ = ["BodyModel", "BodyOutput", "axis_angle_to_matrix"]
+
+
+def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' formula, smooth at zero.
+
+    Args:
+        rotvec: (..., 3) axis * angle, radians.
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
+    theta2 = (rotvec * rotvec).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
+    small = theta2 < 1e-12
+    safe2 = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = safe2.sqrt()
+    # sin(t)/t and (1 - cos t)/t^2 with their Taylor series near 0
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / safe2)
+    x, y, z = rotvec.unbind(-1)
+    zero = torch.zeros_like(x)
+    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*rotvec.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(k)
+    return eye + a * k + b * (k @ k)
+
+
+@dataclass
+class BodyOutput:
+    """A posed body.
+
+    Attributes:
+        vertices: (B, V, 3) world coordinates, metres.
+        origins: (B, S, 3) segment origins (joint centres) in the world frame.
+        rotations: (B, S, 3, 3) segment frame rotations in the world frame.
+    """
+
+    vertices: torch.Tensor
+    origins: torch.Tensor
+    rotations: torch.Tensor
+
+    @property
+    def transforms(self) -> torch.Tensor:
+        """(B, S, 4, 4) homogeneous segment-to-world transforms."""
+        b, s = self.origins.shape[:2]
+        t = torch.zeros(b, s, 4, 4, dtype=self.origins.dtype, device=self.origins.device)
+        t[..., :3, :3] = self.rotations
+        t[..., :3, 3] = self.origins
+        t[..., 3, 3] = 1
+        return t
+
+
+class BodyModel:
+    """A template made posable: stateless forward, batched over subjects.
+
+    Args:
+        template: a :class:`Template` or a template name / URDF path.
+        device: where the tensors live.
+        dtype: float dtype (float64 for Jacobian checks, float32 for speed).
+    """
+
+    def __init__(
+        self,
+        template: Template | str,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        self.template = template if isinstance(template, Template) else load_template(template)
+        t = self.template
+        self.chain = SkeletonChain(t.urdf, t.segments, t.parents, str(t.urdf_path)).to(
+            device=device, dtype=dtype
+        )
+        self.device, self.dtype = torch.device(device), dtype
+        self.dof_names = self.chain.dof_names
+        self.joint_lower, self.joint_upper = self.chain.lower, self.chain.upper
+        self.offsets = self.chain.offsets
+        # mesh vertices padded per segment: (S, Vmax, 3) plus the flat index back to (V,)
+        counts = torch.bincount(t.vertex_segment, minlength=t.num_segments)
+        vmax = int(counts.max())
+        self._padded = torch.zeros(t.num_segments, vmax, 3, dtype=dtype)
+        slot = torch.cat([torch.arange(int(c)) for c in counts])
+        self._padded[t.vertex_segment, slot] = t.vertices.to(dtype)
+        self._flat_index = (t.vertex_segment * vmax + slot).to(device)
+        self._padded = self._padded.to(device)
+        self.faces = t.faces.to(device)
+        # tree levels for the position pass (parents first)
+        depth = [0] * t.num_segments
+        for s, p in enumerate(t.parents):
+            depth[s] = 0 if p < 0 else depth[p] + 1
+        self._levels = [
+            torch.tensor([s for s in range(t.num_segments) if depth[s] == d], device=device)
+            for d in range(1, max(depth) + 1)
+        ]
+        self._parents = torch.as_tensor(t.parents, device=device)
+
+    # ----------------------------------------------------------------------------------------
+    @property
+    def num_segments(self) -> int:
+        return self.template.num_segments
+
+    @property
+    def num_dofs(self) -> int:
+        return len(self.dof_names)
+
+    @property
+    def num_groups(self) -> int:
+        return len(self.template.scale_groups)
+
+    def dof_index(self, name: str) -> int:
+        """Index of joint DOF ``name`` in the joint-angle vector."""
+        try:
+            return self.dof_names.index(name)
+        except ValueError:
+            raise ModelError(f"template {self.template.name!r} has no joint DOF {name!r}") from None
+
+    def zeros(self, batch: int) -> dict[str, torch.Tensor]:
+        """Neutral parameters: unit scales, zero angles, root at the origin."""
+        kw = {"dtype": self.dtype, "device": self.device}
+        return {
+            "scales": torch.ones(batch, self.num_segments, 3, **kw),
+            "joint_angles": torch.zeros(batch, self.num_dofs, **kw),
+            "root_translation": torch.zeros(batch, 3, **kw),
+            "root_rotation": torch.zeros(batch, 3, **kw),
+        }
+
+    def expand_scales(self, group_scales: torch.Tensor) -> torch.Tensor:
+        """Map free scales per group to all segments (left/right symmetry, spine coupling).
+
+        Args:
+            group_scales: (B, G, 3), groups as ``template.scale_groups``.
+
+        Returns:
+            (B, S, 3) per-segment scales.
+        """
+        check_shape("group_scales", group_scales, ("B", self.num_groups, 3))
+        return group_scales[:, self.template.segment_group.to(group_scales.device)]
+
+    # ----------------------------------------------------------------------------------------
+    def forward(
+        self,
+        scales: torch.Tensor,
+        joint_angles: torch.Tensor,
+        root_translation: torch.Tensor,
+        root_rotation: torch.Tensor,
+    ) -> BodyOutput:
+        """Pose the scaled template.
+
+        Args:
+            scales: (B, S, 3) per-segment scales in each segment's frame (1 = template).
+            joint_angles: (B, Q) radians, order :attr:`dof_names`.
+            root_translation: (B, 3) world position of the root segment origin, metres.
+            root_rotation: (B, 3) axis-angle of the root frame in the world, radians.
+
+        Returns:
+            :class:`BodyOutput` with (B, V, 3) vertices, (B, S, 3) origins and
+            (B, S, 3, 3) rotations.
+        """
+        b = scales.shape[0] if scales.dim() == 3 else -1
+        check_shape("scales", scales, (b, self.num_segments, 3))
+        check_shape("joint_angles", joint_angles, (b, self.num_dofs))
+        check_shape("root_translation", root_translation, (b, 3))
+        check_shape("root_rotation", root_rotation, (b, 3))
+        rot_root = axis_angle_to_matrix(root_rotation)  # (B, 3, 3)
+        rot = rot_root[:, None] @ self.chain.rotations(joint_angles)  # (B, S, 3, 3)
+
+        # positions, level by level: p_c = p_parent + R_parent (σ_parent ⊙ o_c)
+        origins = [None] * self.num_segments
+        origins[0] = root_translation
+        for level in self._levels:
+            par = self._parents[level]
+            step = (rot[:, par] @ (scales[:, par] * self.offsets[level])[..., None])[..., 0]
+            for k, s in enumerate(level.tolist()):
+                origins[s] = origins[int(par[k])] + step[:, k]
+        origins_t = torch.stack(origins, dim=1)  # (B, S, 3)
+
+        local = scales[:, :, None, :] * self._padded  # (B, S, Vmax, 3)
+        posed = torch.einsum("bsij,bsvj->bsvi", rot, local) + origins_t[:, :, None, :]
+        vertices = posed.reshape(posed.shape[0], -1, 3)[:, self._flat_index]
+        return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
+
+    __call__ = forward
+
+    def joint_positions(self, out: BodyOutput) -> dict[str, torch.Tensor]:
+        """Named joint centres (design.md section 3 names) of a posed body.
+
+        Returns:
+            name -> (B, 3): the template's measurement joints, ``back`` (midpoint of the hips)
+            and the landmarks (``head_top``, fingertips, soles, …).
+        """
+        t = self.template
+        joints = {name: out.origins[:, s] for name, s in t.joints.items()}
+        if "l_hip" in joints and "r_hip" in joints:
+            joints["back"] = 0.5 * (joints["l_hip"] + joints["r_hip"])
+        for name, v in t.landmarks.items():
+            joints[name] = out.vertices[:, v]
+        return joints
