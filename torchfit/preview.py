@@ -47,8 +47,17 @@ def render_pose_preview(
     posture: int | Posture,
     scales: torch.Tensor | None = None,
     background: np.ndarray | None = None,
+    outline: bool = True,
 ) -> np.ndarray:
-    """Shaded body at a posture's nominal angles with its silhouette outline in green.
+    """Shaded body at a posture's nominal angles, with its silhouette outline in green.
+
+    Args:
+        model: the body model.
+        camera: one camera.
+        posture: 1..6 or a :class:`Posture`.
+        scales: (1, S, 3) segment scales (default: the template).
+        background: (H, W, 3) uint8 BGR image to draw on (default: light grey).
+        outline: draw the silhouette outline.
 
     Returns:
         (H, W, 3) uint8 BGR image.
@@ -67,6 +76,7 @@ def render_pose_preview(
     w, h = camera.image_size
     image = background if background is not None else np.full((h, w, 3), 235, np.uint8)
     image = render_shaded(px, depth, faces, normals, image)
-    for contour in silhouette_outline(render_silhouette(px, faces, (w, h))):
-        draw_polyline(image, contour, (0, 160, 0), thickness=2)
+    if outline:
+        for contour in silhouette_outline(render_silhouette(px, faces, (w, h))):
+            draw_polyline(image, contour, (0, 160, 0), thickness=2)
     return image

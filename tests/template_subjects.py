@@ -1,0 +1,53 @@
+"""Small six-posture subjects rendered from the template itself (no anny, no ../shared).
+
+The person is the template body with known segment scales, shaded over a textured background
+at a reduced image size, so pipeline tests run in seconds. Kept beside the tests that use it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from torchfit.body.measure import measure_model
+from torchfit.body.model import BodyModel
+from torchfit.body.postures import POSTURES
+from torchfit.camera import save_camera
+from torchfit.preview import nominal_view, render_pose_preview
+
+SIZE = (360, 288)
+
+
+def _background(rng: np.random.Generator) -> np.ndarray:
+    h, w = SIZE[1], SIZE[0]
+    base = rng.integers(60, 200, size=(h // 24 + 1, w // 24 + 1, 3)).astype(np.uint8)
+    image = cv2.resize(base, (w, h), interpolation=cv2.INTER_LINEAR)
+    return cv2.GaussianBlur(image, (7, 7), 2.0)
+
+
+def make_template_subject(
+    folder: Path, model: BodyModel, scale: float = 1.0, seed: int = 0, azimuth_deg: float = 30.0
+) -> dict:
+    """Write one subject folder (design.md section 3 layout); returns its truth measurements."""
+    rng = np.random.default_rng(seed)
+    camera = nominal_view(distance=3.5, azimuth_deg=azimuth_deg, focal=450.0, image_size=SIZE)
+    save_camera(camera, folder / "camera.yaml")
+    bg = _background(rng)
+    (folder / "background").mkdir(parents=True, exist_ok=True)
+    (folder / "poses").mkdir(parents=True, exist_ok=True)
+    noise = lambda img: np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)  # noqa: E731
+    for i in range(5):
+        cv2.imwrite(str(folder / "background" / f"bg{i:02d}.png"), noise(bg.astype(np.float64)))
+    scales = torch.full((1, model.num_segments, 3), scale, dtype=model.dtype)
+    for posture in POSTURES:
+        image = render_pose_preview(model, camera, posture, scales, background=bg, outline=False)
+        cv2.imwrite(
+            str(folder / "poses" / f"pose{posture.index}.png"), noise(image.astype(np.float64))
+        )
+    truth = {k: float(v[0]) for k, v in measure_model(model, scales).items()}
+    (folder / "truth.json").write_text(json.dumps(truth))
+    return truth

@@ -1,0 +1,89 @@
+"""tools/fit.py end to end on subjects rendered from the template (no ../shared needed)."""
+
+import csv
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from template_subjects import make_template_subject
+
+from torchfit.body.model import BodyModel
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dataset")
+    model = BodyModel("mpeg4_full")
+    make_template_subject(root / "alice", model, scale=1.0, seed=1)
+    make_template_subject(root / "bob", model, scale=1.05, seed=2, azimuth_deg=-60.0)
+    shutil.copytree(root / "alice", root / "broken")
+    (root / "broken" / "poses" / "pose4.png").unlink()
+    return root
+
+
+def fit(*args, cwd=REPO):
+    return subprocess.run(
+        [sys.executable, str(REPO / "tools" / "fit.py"), *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=300,
+    )
+
+
+def test_fit_cli_writes_outputs_and_survives_a_bad_subject(dataset, tmp_path):
+    out = tmp_path / "run"
+    proc = fit(
+        "--config",
+        REPO / "configs/demo.yaml",
+        "--data",
+        dataset,
+        "--out",
+        out,
+        "--set",
+        "run.name=test",
+    )
+    assert proc.returncode == 1, proc.stderr  # one subject failed
+    rows = {r["subject"]: r for r in csv.DictReader((out / "summary.csv").open())}
+    assert set(rows) == {"alice", "bob", "broken"}
+    assert rows["broken"]["status"] == "failed"
+    assert "pose4" in rows["broken"]["message"]
+    for name in ("alice", "bob"):
+        assert rows[name]["status"] == "template"
+        folder = out / name
+        for f in (
+            "measurements.json",
+            "params.json",
+            "model.urdf",
+            "model.glb",
+            *(f"overlay_pose{i}.png" for i in range(1, 7)),
+        ):
+            assert (folder / f).is_file(), f
+        params = json.loads((folder / "params.json").read_text())
+        assert set(params["poses"]) == {f"pose{i}" for i in range(1, 7)}
+    resolved = yaml.safe_load((out / "config.yaml").read_text())
+    assert resolved["run"]["name"] == "test"
+    assert resolved["data"]["root"] == str(dataset)
+
+    # a second run resumes: finished subjects are not redone
+    before = (out / "alice" / "measurements.json").stat().st_mtime_ns
+    again = fit("--config", REPO / "configs/demo.yaml", "--data", dataset, "--out", out)
+    assert "resumed" in again.stdout
+    assert (out / "alice" / "measurements.json").stat().st_mtime_ns == before
+
+
+def test_fit_cli_config_errors(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("solver:\n  max_iters: 3\n")
+    proc = fit("--config", bad)
+    assert proc.returncode == 2
+    assert "unknown key 'solver.max_iters'" in proc.stderr and str(bad) in proc.stderr
+    proc = fit("--config", REPO / "configs/demo.yaml", "--data", tmp_path / "nothing")
+    assert proc.returncode == 2
+    assert "not found" in proc.stderr

@@ -1,0 +1,46 @@
+"""Fit body models to a dataset of six-posture captures.
+
+    python tools/fit.py --config configs/demo.yaml [--data DIR] [--out DIR] [--set key=value ...]
+
+Writes runs/<run.name>/ (or --out): config.yaml, summary.csv and per subject
+measurements.json, params.json, model.urdf + meshes/, model.glb and overlay_pose1..6.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tqdm import tqdm  # noqa: E402
+
+from torchfit.cli import add_config_args, config_from_args, run_folder  # noqa: E402
+from torchfit.errors import TorchfitError  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_config_args(parser)
+    args = parser.parse_args(argv)
+    try:
+        config = config_from_args(args)
+        run_dir = run_folder(config)
+        from torchfit.pipeline import run
+
+        results = run(config, run_dir, progress=lambda s: tqdm(s, desc="subjects", unit="subject"))
+    except TorchfitError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    failed = [r for r in results if r.status == "failed"]
+    for r in results:
+        height = r.measurements.get("height_m")
+        h = f"height {height:.3f} m" if height is not None else ""
+        print(f"{r.name:>16}  {r.status:<9} {h}  {r.message}")
+    print(f"outputs in {run_dir}/ ({len(results) - len(failed)} of {len(results)} subjects)")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
