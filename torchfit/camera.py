@@ -1,0 +1,456 @@
+"""Calibrated cameras: ``camera.yaml`` I/O, OpenCV pinhole + distortion projection, look-at.
+
+Conventions (design.md section 2):
+
+- ``R``, ``t`` map world to camera: ``x_cam = R @ x_world + t``; the camera looks along its
+  +z axis, x to the right and y down in the image.
+- Pixel ``(0, 0)`` is the centre of the top-left pixel; u grows to the right, v down.
+- Distortion is OpenCV's five-coefficient model ``(k1, k2, p1, p2, k3)``: with normalised
+  coordinates ``x = X / Z``, ``y = Y / Z`` and ``r² = x² + y²``::
+
+      x' = x (1 + k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2 x²)
+      y' = y (1 + k1 r² + k2 r⁴ + k3 r⁶) + p1 (r² + 2 y²) + 2 p2 x y
+      (u, v, 1) = K (x', y', 1)
+
+  which is what ``cv2.projectPoints`` computes (OpenCV ignores the skew ``K[0, 1]``; it is
+  applied here, and ``camera.yaml`` files written by calibration tools have it at zero).
+- Lengths in metres, image sizes as ``(width, height)`` in pixels.
+
+A :class:`Camera` holds a batch of ``B`` cameras that share one image size; tensors are batch
+first. Everything here is differentiable with respect to points and camera parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+
+from torchfit.errors import CameraError, ShapeError, check_shape
+
+__all__ = [
+    "Camera",
+    "load_camera",
+    "save_camera",
+    "camera_from_dict",
+    "camera_to_dict",
+    "load_stereo_cameras",
+    "save_stereo_cameras",
+    "stack_cameras",
+    "world_to_camera",
+    "distort_normalized",
+    "project_points",
+    "look_at",
+    "camera_centre",
+    "ROTATION_TOLERANCE",
+]
+
+#: Largest allowed ``max |RᵀR - I|`` and ``|det R - 1|`` for a rotation read from a file.
+ROTATION_TOLERANCE = 1e-4
+
+
+@dataclass
+class Camera:
+    """A batch of ``B`` calibrated pinhole cameras with OpenCV distortion.
+
+    Attributes:
+        K: (B, 3, 3) intrinsic matrix, pixels.
+        dist: (B, 5) distortion ``(k1, k2, p1, p2, k3)``.
+        R: (B, 3, 3) world -> camera rotation.
+        t: (B, 3) world -> camera translation, metres.
+        image_size: ``(width, height)`` in pixels, shared by the batch.
+
+    Unbatched tensors (``K`` (3, 3), ``dist`` (5,), ``R`` (3, 3), ``t`` (3,)) are accepted and
+    get a batch dimension of 1.
+
+    Raises:
+        ShapeError: a tensor has the wrong shape or the batch sizes differ.
+        CameraError: ``image_size`` is not two positive integers.
+    """
+
+    K: torch.Tensor
+    dist: torch.Tensor
+    R: torch.Tensor
+    t: torch.Tensor
+    image_size: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        for name, unbatched in (("K", 2), ("dist", 1), ("R", 2), ("t", 1)):
+            value = getattr(self, name)
+            if not isinstance(value, torch.Tensor):
+                raise ShapeError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
+            if value.dim() == unbatched:
+                setattr(self, name, value.unsqueeze(0))
+        batch = self.K.shape[0] if self.K.dim() == 3 else None
+        check_shape("K", self.K, ("B", 3, 3))
+        check_shape("dist", self.dist, (batch, 5))
+        check_shape("R", self.R, (batch, 3, 3))
+        check_shape("t", self.t, (batch, 3))
+        size = tuple(self.image_size)
+        if len(size) != 2 or any(
+            isinstance(s, bool) or not isinstance(s, int) or s <= 0 for s in size
+        ):
+            raise CameraError(
+                f"image_size: expected (width, height) as two positive integers, "
+                f"got {self.image_size!r}"
+            )
+        self.image_size = (int(size[0]), int(size[1]))
+
+    @property
+    def batch_size(self) -> int:
+        """The number of cameras ``B``."""
+        return self.K.shape[0]
+
+    @property
+    def centre(self) -> torch.Tensor:
+        """(B, 3) camera centres in world coordinates, metres."""
+        return camera_centre(self.R, self.t)
+
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> Camera:
+        """A copy with every tensor moved to ``device`` and/or cast to ``dtype``."""
+        return dataclasses.replace(
+            self,
+            K=self.K.to(device=device, dtype=dtype),
+            dist=self.dist.to(device=device, dtype=dtype),
+            R=self.R.to(device=device, dtype=dtype),
+            t=self.t.to(device=device, dtype=dtype),
+        )
+
+    def __getitem__(self, index: int | slice) -> Camera:
+        """The sub-batch ``index`` (an int keeps a batch dimension of 1)."""
+        if isinstance(index, int):
+            index = slice(index, index + 1 if index != -1 else None)
+        return dataclasses.replace(
+            self, K=self.K[index], dist=self.dist[index], R=self.R[index], t=self.t[index]
+        )
+
+    def expand(self, batch_size: int) -> Camera:
+        """Repeat a single camera (B = 1) ``batch_size`` times."""
+        if self.batch_size != 1:
+            raise ShapeError(f"expand: expected a camera batch of 1, got {self.batch_size}")
+        return dataclasses.replace(
+            self,
+            K=self.K.expand(batch_size, 3, 3),
+            dist=self.dist.expand(batch_size, 5),
+            R=self.R.expand(batch_size, 3, 3),
+            t=self.t.expand(batch_size, 3),
+        )
+
+
+def stack_cameras(cameras: Sequence[Camera]) -> Camera:
+    """Concatenate cameras along the batch dimension.
+
+    Raises:
+        CameraError: the list is empty or the image sizes differ.
+    """
+    if not cameras:
+        raise CameraError("cameras: expected at least one camera, got an empty list")
+    sizes = {c.image_size for c in cameras}
+    if len(sizes) != 1:
+        raise CameraError(f"cameras: all image sizes must be equal, got {sorted(sizes)}")
+    return Camera(
+        K=torch.cat([c.K for c in cameras]),
+        dist=torch.cat([c.dist for c in cameras]),
+        R=torch.cat([c.R for c in cameras]),
+        t=torch.cat([c.t for c in cameras]),
+        image_size=cameras[0].image_size,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry
+
+
+def camera_centre(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Camera centre ``C = -Rᵀ t`` in world coordinates.
+
+    Args:
+        R: (B, 3, 3) world -> camera rotation.
+        t: (B, 3) world -> camera translation.
+
+    Returns:
+        (B, 3) centres, metres.
+    """
+    check_shape("R", R, ("B", 3, 3))
+    check_shape("t", t, (R.shape[0], 3))
+    return -(R.transpose(1, 2) @ t.unsqueeze(-1)).squeeze(-1)
+
+
+def look_at(
+    centre: torch.Tensor,
+    target: torch.Tensor,
+    up: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotation and translation of a camera at ``centre`` looking at ``target``.
+
+    The camera's +z axis points at the target, its +x axis is horizontal (perpendicular to
+    ``up``) and its +y axis points down in the image (``up`` projects upwards).
+
+    Args:
+        centre: (B, 3) camera centres, world frame, metres.
+        target: (B, 3) points looked at, world frame.
+        up: (3,) or (B, 3) world up direction; default ``+z``.
+
+    Returns:
+        ``(R, t)``: (B, 3, 3) world -> camera rotations and (B, 3) translations.
+
+    Raises:
+        CameraError: ``centre`` equals ``target`` or the viewing direction is parallel to up.
+    """
+    check_shape("centre", centre, ("B", 3))
+    check_shape("target", target, (centre.shape[0], 3))
+    if up is None:
+        up = torch.tensor([0.0, 0.0, 1.0], dtype=centre.dtype, device=centre.device)
+    up = up.to(centre).expand_as(centre)
+    forward = target - centre
+    norm = torch.linalg.vector_norm(forward, dim=-1, keepdim=True)
+    if bool((norm < 1e-9).any()):
+        raise CameraError("look_at: centre and target coincide")
+    z = forward / norm
+    x = torch.linalg.cross(z, up)
+    xnorm = torch.linalg.vector_norm(x, dim=-1, keepdim=True)
+    if bool((xnorm < 1e-9).any()):
+        raise CameraError("look_at: the viewing direction is parallel to the up vector")
+    x = x / xnorm
+    y = torch.linalg.cross(z, x)
+    R = torch.stack([x, y, z], dim=1)
+    t = -(R @ centre.unsqueeze(-1)).squeeze(-1)
+    return R, t
+
+
+def world_to_camera(points: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """Camera-frame coordinates ``R x + t``.
+
+    Args:
+        points: (B, N, 3) world points, metres.
+        camera: a batch of B cameras (or 1, broadcast).
+
+    Returns:
+        (B, N, 3) camera-frame points; the last coordinate is the depth along the optical axis.
+    """
+    check_shape("points", points, ("B", "N", 3))
+    if camera.batch_size not in (1, points.shape[0]):
+        raise ShapeError(
+            f"camera: batch size {camera.batch_size} does not match points batch "
+            f"{points.shape[0]} (expected 1 or {points.shape[0]})"
+        )
+    if points.dtype != camera.R.dtype or points.device != camera.R.device:
+        raise ShapeError(
+            f"points: dtype/device {points.dtype}/{points.device} differ from the camera's "
+            f"{camera.R.dtype}/{camera.R.device} (use camera.to(device, dtype))"
+        )
+    return points @ camera.R.transpose(1, 2) + camera.t.unsqueeze(1)
+
+
+def distort_normalized(xy: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
+    """Apply OpenCV's radial + tangential distortion to normalised image coordinates.
+
+    Args:
+        xy: (B, N, 2) undistorted normalised coordinates ``(X/Z, Y/Z)``.
+        dist: (B, 5) ``(k1, k2, p1, p2, k3)`` (B may be 1, broadcast).
+
+    Returns:
+        (B, N, 2) distorted normalised coordinates.
+    """
+    check_shape("xy", xy, ("B", "N", 2))
+    check_shape("dist", dist, (None, 5))
+    k1, k2, p1, p2, k3 = (dist[:, i : i + 1] for i in range(5))
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xy2 = 2 * x * y
+    xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2
+    return torch.stack([xd, yd], dim=-1)
+
+
+def project_points(
+    points: torch.Tensor, camera: Camera, return_depth: bool = False
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """Project world points to pixels with the OpenCV camera model.
+
+    Points at or behind the camera (depth <= 0) give meaningless pixels; use ``return_depth``
+    to mask them.
+
+    Args:
+        points: (B, N, 3) world points, metres.
+        camera: B cameras (or one, broadcast over the batch).
+        return_depth: also return the camera-frame depth.
+
+    Returns:
+        (B, N, 2) pixel coordinates ``(u, v)``; with ``return_depth`` also (B, N) depths in
+        metres.
+    """
+    cam = world_to_camera(points, camera)
+    depth = cam[..., 2]
+    xy = cam[..., :2] / depth.unsqueeze(-1)
+    xy = distort_normalized(xy, camera.dist)
+    K = camera.K
+    u = K[:, 0:1, 0] * xy[..., 0] + K[:, 0:1, 1] * xy[..., 1] + K[:, 0:1, 2]
+    v = K[:, 1:2, 1] * xy[..., 1] + K[:, 1:2, 2]
+    pixels = torch.stack([u, v], dim=-1)
+    return (pixels, depth) if return_depth else pixels
+
+
+# --------------------------------------------------------------------------------------------
+# camera.yaml
+
+
+def _matrix(data: dict, key: str, rows: int, cols: int | None, source: str) -> torch.Tensor:
+    if key not in data:
+        raise CameraError(f"{source}: missing key '{key}'")
+    value = data[key]
+    shape = f"{rows}x{cols}" if cols else f"{rows}"
+    try:
+        tensor = torch.tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError) as exc:
+        raise CameraError(
+            f"{source}: key '{key}' expects a {shape} list of numbers, got {value!r}"
+        ) from exc
+    expected = (rows, cols) if cols else (rows,)
+    if tuple(tensor.shape) != expected or isinstance(value, bool):
+        raise CameraError(
+            f"{source}: key '{key}' expects a {shape} list of numbers, got shape "
+            f"{tuple(tensor.shape)}"
+        )
+    if not bool(torch.isfinite(tensor).all()):
+        raise CameraError(f"{source}: key '{key}' contains non-finite values: {value!r}")
+    return tensor
+
+
+def camera_from_dict(data: Any, source: str = "<dict>") -> Camera:
+    """Build and validate a single camera (B = 1, float64) from a ``camera.yaml`` mapping.
+
+    Checks: ``image_size`` two positive integers; ``K`` upper triangular with positive focal
+    lengths and ``K[2, 2] = 1``; ``dist`` five numbers; ``R`` orthonormal with determinant +1
+    (within :data:`ROTATION_TOLERANCE`); ``t`` three numbers.
+
+    Args:
+        data: mapping with keys ``image_size, K, dist, R, t``.
+        source: name used in error messages (the file path).
+
+    Raises:
+        CameraError: naming ``source`` and the offending key.
+    """
+    if not isinstance(data, dict):
+        raise CameraError(f"{source}: expected a mapping of camera keys, got {type(data).__name__}")
+    known = {"image_size", "K", "dist", "R", "t"}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise CameraError(
+            f"{source}: unknown key '{unknown[0]}' (valid keys: {', '.join(sorted(known))})"
+        )
+    if "image_size" not in data:
+        raise CameraError(f"{source}: missing key 'image_size'")
+    size = data["image_size"]
+    if (
+        not isinstance(size, (list, tuple))
+        or len(size) != 2
+        or any(isinstance(s, bool) or not isinstance(s, int) or s <= 0 for s in size)
+    ):
+        raise CameraError(
+            f"{source}: key 'image_size' expects [width, height] as two positive integers, "
+            f"got {size!r}"
+        )
+    K = _matrix(data, "K", 3, 3, source)
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise CameraError(
+            f"{source}: key 'K' must be upper triangular with K[2][2] = 1, got {K.tolist()}"
+        )
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CameraError(
+            f"{source}: key 'K' must have positive focal lengths, got fx={K[0, 0].item()}, "
+            f"fy={K[1, 1].item()}"
+        )
+    dist = _matrix(data, "dist", 5, None, source)
+    R = _matrix(data, "R", 3, 3, source)
+    ortho = (R.T @ R - torch.eye(3, dtype=R.dtype)).abs().max().item()
+    det = torch.linalg.det(R).item()
+    if ortho > ROTATION_TOLERANCE or abs(det - 1) > ROTATION_TOLERANCE:
+        raise CameraError(
+            f"{source}: key 'R' must be a rotation (orthonormal, det +1, tolerance "
+            f"{ROTATION_TOLERANCE}), got max|RᵀR - I| = {ortho:.3g}, det = {det:.6g}"
+        )
+    t = _matrix(data, "t", 3, None, source)
+    return Camera(K=K, dist=dist, R=R, t=t, image_size=(int(size[0]), int(size[1])))
+
+
+def camera_to_dict(camera: Camera, index: int = 0) -> dict:
+    """The ``camera.yaml`` mapping of camera ``index`` of the batch (plain Python floats)."""
+    if not -camera.batch_size <= index < camera.batch_size:
+        raise CameraError(f"index: expected 0 <= index < {camera.batch_size}, got {index}")
+
+    def plain(x: torch.Tensor) -> list:
+        return [float(v) if not isinstance(v, list) else v for v in x.tolist()]
+
+    return {
+        "image_size": [int(camera.image_size[0]), int(camera.image_size[1])],
+        "K": [plain(row) for row in camera.K[index].detach().double().cpu()],
+        "dist": plain(camera.dist[index].detach().double().cpu()),
+        "R": [plain(row) for row in camera.R[index].detach().double().cpu()],
+        "t": plain(camera.t[index].detach().double().cpu()),
+    }
+
+
+def _read_yaml(path: Path) -> Any:
+    if not path.is_file():
+        raise CameraError(f"camera file not found: {path}")
+    try:
+        return yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise CameraError(f"{path}: invalid YAML: {exc}") from exc
+
+
+def _dump(data: dict) -> str:
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=200)
+
+
+def load_camera(path: str | Path) -> Camera:
+    """Read and validate a ``camera.yaml`` file (design.md section 3).
+
+    Returns:
+        A :class:`Camera` with B = 1, float64 tensors.
+
+    Raises:
+        CameraError: a missing or invalid file; the message names the file and the key.
+    """
+    path = Path(path)
+    return camera_from_dict(_read_yaml(path), str(path))
+
+
+def save_camera(camera: Camera, path: str | Path, index: int = 0) -> None:
+    """Write camera ``index`` of the batch as ``camera.yaml`` (full float precision)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(_dump(camera_to_dict(camera, index)))
+
+
+def load_stereo_cameras(path: str | Path) -> tuple[Camera, Camera]:
+    """Read a stereo ``cameras.yaml`` (``{left: <camera>, right: <camera>}``).
+
+    Raises:
+        CameraError: naming the file and the key (``left.R``, …).
+    """
+    path = Path(path)
+    data = _read_yaml(path)
+    if not isinstance(data, dict) or set(data) != {"left", "right"}:
+        keys = sorted(data) if isinstance(data, dict) else type(data).__name__
+        raise CameraError(f"{path}: expected exactly the keys 'left' and 'right', got {keys}")
+    return (
+        camera_from_dict(data["left"], f"{path} [left]"),
+        camera_from_dict(data["right"], f"{path} [right]"),
+    )
+
+
+def save_stereo_cameras(left: Camera, right: Camera, path: str | Path) -> None:
+    """Write a stereo ``cameras.yaml`` from two single cameras."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(_dump({"left": camera_to_dict(left), "right": camera_to_dict(right)}))

@@ -1,0 +1,353 @@
+"""Dataset layout (design.md section 3): subject folders, their files and their validation.
+
+A dataset is a folder of subject folders, or a manifest file listing subject folders (one per
+line, relative to the manifest; blank lines and ``#`` comments are skipped). Nothing here
+decodes images: a :class:`Subject` holds paths, the camera and the ground truth. Loading never
+stops at a bad subject; each :class:`Subject` carries the list of its ``problems`` (empty when
+it is usable) so that a batch run can skip it and report why.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from torchfit.camera import Camera, load_camera, load_stereo_cameras
+from torchfit.errors import CameraError, DataError
+from torchfit.measurements import JOINT_NAMES, MEASUREMENT_KEYS
+
+__all__ = [
+    "IMAGE_EXTENSIONS",
+    "N_POSES",
+    "MIN_BACKGROUND_FRAMES",
+    "CAPTURE_NAMES",
+    "StereoInfo",
+    "Subject",
+    "load_subject",
+    "validate_subject",
+    "validate_truth",
+    "load_dataset",
+]
+
+#: Image file extensions recognised as frames (lower case).
+IMAGE_EXTENSIONS: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+#: Number of postures (design.md section 4).
+N_POSES = 6
+#: Fewest background frames a subject (and each stereo view) needs.
+MIN_BACKGROUND_FRAMES = 5
+#: Capture names of ``truth.json`` ``joints_world``.
+CAPTURE_NAMES: tuple[str, ...] = tuple(f"pose{i}" for i in range(1, N_POSES + 1)) + ("stereo",)
+
+
+@dataclass
+class StereoInfo:
+    """The optional stereo pair of a subject (design.md section 7).
+
+    Attributes:
+        left, right: the two calibrated cameras (B = 1 each).
+        background_left, background_right: background frame paths per view, sorted.
+        left_image, right_image: the person in posture 5, one image per view.
+    """
+
+    left: Camera
+    right: Camera
+    background_left: list[Path]
+    background_right: list[Path]
+    left_image: Path
+    right_image: Path
+
+
+@dataclass
+class Subject:
+    """One subject folder.
+
+    Attributes:
+        name: the folder name.
+        folder: the folder path.
+        camera: the calibrated camera (B = 1), or None where ``camera.yaml`` is bad.
+        background: background frame paths, sorted by name.
+        poses: the six posture image paths ``pose1`` … ``pose6``, in order (a missing one is
+            the path where it was expected).
+        truth: the parsed ``truth.json``, or None where absent or invalid.
+        stereo: the stereo pair, or None where absent or invalid.
+        problems: what is wrong, one message per problem naming the file; empty when usable.
+        warnings: what is off but does not prevent fitting (e.g. a bad optional stereo folder).
+    """
+
+    name: str
+    folder: Path
+    camera: Camera | None = None
+    background: list[Path] = field(default_factory=list)
+    poses: list[Path] = field(default_factory=list)
+    truth: dict | None = None
+    stereo: StereoInfo | None = None
+    problems: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True when the subject can be fitted (no problems)."""
+        return not self.problems
+
+    @property
+    def status(self) -> str:
+        """``"ok"`` or ``"invalid"``."""
+        return "ok" if self.ok else "invalid"
+
+    def raise_if_invalid(self) -> None:
+        """Raise :class:`DataError` listing the problems, if any."""
+        if self.problems:
+            raise DataError(f"subject {self.name!r} is invalid: " + "; ".join(self.problems))
+
+
+# --------------------------------------------------------------------------------------------
+# Files
+
+
+def _frames(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+
+
+def _find_image(folder: Path, stem: str) -> Path | None:
+    for ext in IMAGE_EXTENSIONS:
+        for candidate in (folder / f"{stem}{ext}", folder / f"{stem}{ext.upper()}"):
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """``(width, height)`` from a PNG header without decoding; None for other files."""
+    if path.suffix.lower() != ".png":
+        return None
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return struct.unpack(">II", head[16:24])
+
+
+def _check_frames(
+    paths: list[Path], size: tuple[int, int] | None, problems: list[str], what: str
+) -> None:
+    for p in paths:
+        if p.stat().st_size == 0:
+            problems.append(f"{p}: empty {what} file")
+            continue
+        if p.suffix.lower() == ".png":
+            found = _png_size(p)
+            if found is None:
+                problems.append(f"{p}: not a valid PNG file")
+            elif size is not None and tuple(found) != tuple(size):
+                problems.append(
+                    f"{p}: {what} is {found[0]}x{found[1]} pixels, camera.yaml image_size is "
+                    f"{size[0]}x{size[1]}"
+                )
+
+
+# --------------------------------------------------------------------------------------------
+# truth.json
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def validate_truth(data: Any, source: str = "truth.json") -> list[str]:
+    """Problems of a parsed ``truth.json`` (empty when valid).
+
+    Valid: a mapping whose keys are measurement keys (positive finite numbers, metres) and
+    optionally ``joints_world`` (capture name -> joint name -> three finite numbers). Every key
+    may be missing.
+    """
+    if not isinstance(data, dict):
+        return [f"{source}: expected a JSON object, got {type(data).__name__}"]
+    problems = []
+    for key, value in data.items():
+        if key == "joints_world":
+            problems += _validate_joints_world(value, source)
+        elif key in MEASUREMENT_KEYS:
+            if not _is_number(value) or value <= 0:
+                problems.append(
+                    f"{source}: key '{key}' expects a positive number of metres, got {value!r}"
+                )
+        else:
+            problems.append(
+                f"{source}: unknown key '{key}' (valid keys: "
+                f"{', '.join(MEASUREMENT_KEYS)}, joints_world)"
+            )
+    return problems
+
+
+def _validate_joints_world(value: Any, source: str) -> list[str]:
+    if not isinstance(value, dict):
+        return [f"{source}: key 'joints_world' expects an object, got {type(value).__name__}"]
+    problems = []
+    for capture, joints in value.items():
+        where = f"joints_world.{capture}"
+        if capture not in CAPTURE_NAMES:
+            problems.append(
+                f"{source}: unknown capture '{where}' (valid: {', '.join(CAPTURE_NAMES)})"
+            )
+            continue
+        if not isinstance(joints, dict):
+            problems.append(f"{source}: key '{where}' expects an object of joint positions")
+            continue
+        for name, xyz in joints.items():
+            if name not in JOINT_NAMES:
+                problems.append(
+                    f"{source}: unknown joint '{where}.{name}' (valid: {', '.join(JOINT_NAMES)})"
+                )
+            elif not (isinstance(xyz, list) and len(xyz) == 3 and all(_is_number(v) for v in xyz)):
+                problems.append(
+                    f"{source}: key '{where}.{name}' expects [x, y, z] in metres, got {xyz!r}"
+                )
+    return problems
+
+
+# --------------------------------------------------------------------------------------------
+# Subjects
+
+
+def _load_stereo(folder: Path, warnings: list[str]) -> StereoInfo | None:
+    stereo = folder / "stereo"
+    if not stereo.is_dir():
+        return None
+    problems: list[str] = []
+    try:
+        left, right = load_stereo_cameras(stereo / "cameras.yaml")
+    except CameraError as exc:
+        warnings.append(f"stereo pair ignored: {exc}")
+        return None
+    bg_left = _frames(stereo / "background" / "left")
+    bg_right = _frames(stereo / "background" / "right")
+    for side, frames, cam in (("left", bg_left, left), ("right", bg_right, right)):
+        if len(frames) < MIN_BACKGROUND_FRAMES:
+            problems.append(
+                f"{stereo / 'background' / side}: expected >= {MIN_BACKGROUND_FRAMES} "
+                f"background frames, found {len(frames)}"
+            )
+        _check_frames(frames, cam.image_size, problems, "background frame")
+    images = {}
+    for side, cam in (("left", left), ("right", right)):
+        found = _find_image(stereo, side)
+        if found is None:
+            problems.append(f"{stereo / (side + '.png')}: missing stereo image")
+        else:
+            _check_frames([found], cam.image_size, problems, "stereo image")
+            images[side] = found
+    if problems:
+        warnings.extend(f"stereo pair ignored: {p}" for p in problems)
+        return None
+    return StereoInfo(left, right, bg_left, bg_right, images["left"], images["right"])
+
+
+def load_subject(folder: str | Path) -> Subject:
+    """Read one subject folder; never raises for bad content (see ``Subject.problems``).
+
+    Problems (the subject cannot be fitted): missing folder, missing or invalid
+    ``camera.yaml``, fewer than :data:`MIN_BACKGROUND_FRAMES` background frames, a missing
+    posture image, an image whose size differs from the camera's, an invalid ``truth.json``.
+    An invalid optional ``stereo/`` folder is only a warning (``stereo`` is None).
+    """
+    folder = Path(folder)
+    subject = Subject(name=folder.name, folder=folder)
+    problems = subject.problems
+    if not folder.is_dir():
+        problems.append(f"{folder}: subject folder not found")
+        return subject
+    try:
+        subject.camera = load_camera(folder / "camera.yaml")
+    except CameraError as exc:
+        problems.append(str(exc))
+    size = subject.camera.image_size if subject.camera is not None else None
+
+    subject.background = _frames(folder / "background")
+    if len(subject.background) < MIN_BACKGROUND_FRAMES:
+        problems.append(
+            f"{folder / 'background'}: expected >= {MIN_BACKGROUND_FRAMES} background frames, "
+            f"found {len(subject.background)}"
+        )
+    _check_frames(subject.background, size, problems, "background frame")
+
+    for i in range(1, N_POSES + 1):
+        found = _find_image(folder / "poses", f"pose{i}")
+        if found is None:
+            expected = folder / "poses" / f"pose{i}.png"
+            problems.append(f"{expected}: missing posture image")
+            subject.poses.append(expected)
+        else:
+            _check_frames([found], size, problems, "posture image")
+            subject.poses.append(found)
+
+    truth_path = folder / "truth.json"
+    if truth_path.is_file():
+        try:
+            truth = json.loads(truth_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            problems.append(f"{truth_path}: invalid JSON: {exc}")
+        else:
+            truth_problems = validate_truth(truth, str(truth_path))
+            problems.extend(truth_problems)
+            subject.truth = None if truth_problems else truth
+
+    subject.stereo = _load_stereo(folder, subject.warnings)
+    return subject
+
+
+def validate_subject(folder: str | Path) -> list[str]:
+    """The problems of one subject folder, each naming the file (empty when valid)."""
+    return load_subject(folder).problems
+
+
+def _read_manifest(path: Path) -> list[Path]:
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path}: cannot read the manifest: {exc}") from exc
+    entries = []
+    for line in lines:
+        line = line.split("#", 1)[0].strip()
+        if line:
+            entry = Path(line)
+            entries.append(entry if entry.is_absolute() else path.parent / entry)
+    return entries
+
+
+def load_dataset(root: str | Path, subjects: list[str] | None = None) -> list[Subject]:
+    """Load every subject of a dataset.
+
+    Args:
+        root: a folder of subject folders (every sub-folder is a subject; hidden ones are
+            skipped) or a manifest file with one subject folder per line.
+        subjects: keep only these subject names (folder names), in this order; a name that is
+            not in the dataset gives a subject with a "not found" problem.
+
+    Returns:
+        One :class:`Subject` per subject folder, sorted by name unless ``subjects`` gives the
+        order; check ``subject.ok`` / ``subject.problems`` before fitting.
+
+    Raises:
+        DataError: ``root`` does not exist, or the manifest cannot be read.
+    """
+    root = Path(root)
+    if root.is_dir():
+        folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    elif root.is_file():
+        folders = _read_manifest(root)
+    else:
+        raise DataError(f"root: dataset folder or manifest not found: {root}")
+    if subjects is not None:
+        by_name = {f.name: f for f in folders}
+        base = root if root.is_dir() else root.parent
+        folders = [by_name.get(name, base / name) for name in subjects]
+    return [load_subject(f) for f in folders]
