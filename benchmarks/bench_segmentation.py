@@ -1,0 +1,165 @@
+"""Speed of the segmentation chain and of the chamfer transform on this machine's CPU.
+
+    python benchmarks/bench_segmentation.py [--batch 1 8 16] [--repeats 7] [--threads N]
+
+Prints machine and versions, then
+
+1. frames per second at 720x576 for the whole chain, batched: Mahalanobis test (HSL),
+   clean-up (opening, largest region, closing, hole filling), ordered outer contour, contour
+   mask and 3-4 chamfer distance map; with the time of each stage;
+2. the torch 3-4 chamfer transform against ``cv2.distanceTransform(DIST_L2, 3)`` on the same
+   contour images (both per image), and the exact Euclidean option.
+
+Every figure is the median of ``--repeats`` runs after one warm-up run. The scene is synthetic
+(a textured background, a person-like silhouette with a cast shadow, sensor noise), so that
+the figures do not depend on data that may be absent; F-measures on real footage are printed
+by ``benchmarks/eval_segmentation.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+
+import cv2
+import kornia
+import numpy as np
+import torch
+
+from torchfit.config import SegmentationConfig
+from torchfit.contours import (
+    chamfer_distance_transform,
+    contour_mask,
+    distance_map,
+    euclidean_distance_transform,
+    outer_contours,
+)
+from torchfit.segmentation import clean_mask, fit_background, mahalanobis_distance
+
+W, H = 720, 576
+
+
+def machine() -> str:
+    cpu = platform.processor() or "?"
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    load = os.getloadavg() if hasattr(os, "getloadavg") else ("?",)
+    return (
+        f"{platform.platform()} | {cpu} | {os.cpu_count()} logical CPUs | "
+        f"load average {load[0]:.2f} | torch {torch.__version__} "
+        f"({torch.get_num_threads()} threads) | kornia {kornia.__version__} | "
+        f"opencv {cv2.__version__} | numpy {np.__version__}"
+    )
+
+
+def median_time(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def scene(batch: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """10 background frames ``(10, 3, H, W)`` and ``batch`` images with a person."""
+    coarse = torch.rand(1, 3, 12, 15, generator=gen)
+    bg = torch.nn.functional.interpolate(coarse, size=(H, W), mode="bilinear") * 0.5 + 0.2
+    frames = (bg + torch.randn(10, 3, H, W, generator=gen) * 2 / 255).clamp(0, 1)
+    person = np.zeros((H, W), np.uint8)
+    cv2.ellipse(person, (360, 300), (70, 200), 0, 0, 360, 1, -1)  # body
+    cv2.circle(person, (360, 80), 35, 1, -1)  # head
+    cv2.line(person, (300, 200), (180, 330), 1, 25)  # arm
+    shadow = np.zeros((H, W), np.uint8)
+    cv2.ellipse(shadow, (480, 500), (140, 25), 0, 0, 360, 1, -1)
+    img = bg.clone()
+    img[:, :, torch.from_numpy(shadow).bool()] *= 0.6
+    img[:, :, torch.from_numpy(person).bool()] = torch.tensor([0.8, 0.3, 0.2]).view(1, 3, 1)
+    images = (img + torch.randn(batch, 3, H, W, generator=gen) * 2 / 255).clamp(0, 1)
+    return frames, images
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--batch", type=int, nargs="+", default=[1, 8, 16])
+    p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    args = p.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    print(machine())
+    gen = torch.Generator().manual_seed(0)
+    cfg = SegmentationConfig()
+
+    print(f"\n1. whole chain at {W}x{H}, CPU, median of {args.repeats}")
+    print("   batch  frames/s  ms/frame | test  clean-up  contour  dist-map   (ms/frame)")
+    contours_for_dt = None
+    for b in args.batch:
+        frames, images = scene(b, gen)
+        model = fit_background(frames, cfg)
+        stages = {}
+
+        def chain(stages=stages, model=model, images=images):
+            t0 = time.perf_counter()
+            raw = mahalanobis_distance(model, images) > cfg.threshold
+            t1 = time.perf_counter()
+            masks = clean_mask(raw, cfg.open_kernel, cfg.close_kernel, cfg.fill_holes)
+            t2 = time.perf_counter()
+            pts = outer_contours(masks)
+            seeds = torch.zeros_like(masks)
+            for i, c in enumerate(pts):
+                seeds[i, 0, c[:, 1], c[:, 0]] = True
+            t3 = time.perf_counter()
+            dist = distance_map(seeds, cfg.distance)
+            t4 = time.perf_counter()
+            for k, v in zip(
+                ("test", "clean", "contour", "dist"),
+                (t1 - t0, t2 - t1, t3 - t2, t4 - t3),
+                strict=True,
+            ):
+                stages.setdefault(k, []).append(v)
+            return dist
+
+        total = median_time(chain, args.repeats)
+        per = {k: statistics.median(v[1:]) / b * 1e3 for k, v in stages.items()}
+        print(
+            f"   {b:5d}  {b / total:8.1f}  {total / b * 1e3:8.1f} | {per['test']:5.1f}  "
+            f"{per['clean']:8.1f}  {per['contour']:7.1f}  {per['dist']:8.1f}"
+        )
+        contours_for_dt = contour_mask(
+            clean_mask(mahalanobis_distance(model, images) > cfg.threshold)
+        )
+
+    print(
+        f"\n2. distance transform of the contour image at {W}x{H}, ms per image, "
+        f"median of {args.repeats}"
+    )
+    seeds1 = contours_for_dt[:1]
+    src = (~seeds1[0, 0].numpy()).astype(np.uint8)  # OpenCV measures to the zero pixels
+    t_cv = median_time(lambda: cv2.distanceTransform(src, cv2.DIST_L2, 3), args.repeats) * 1e3
+    print(f"   cv2.distanceTransform(DIST_L2, 3):           {t_cv:8.2f}")
+    for b in args.batch:
+        seeds = seeds1.expand(b, -1, -1, -1).contiguous()
+        for algo in ("rows", "lines"):
+            t = median_time(lambda s=seeds, a=algo: chamfer_distance_transform(s, a), args.repeats)
+            t = t / b * 1e3
+            print(
+                f"   torch chamfer 3-4 '{algo}', batch {b:3d}:     {t:8.2f}   "
+                f"({t / t_cv:5.2f}x OpenCV)"
+            )
+    t_e = median_time(lambda: euclidean_distance_transform(seeds1), max(3, args.repeats // 2)) * 1e3
+    print(f"   torch exact Euclidean, batch   1:          {t_e:8.2f}   ({t_e / t_cv:5.2f}x OpenCV)")
+
+
+if __name__ == "__main__":
+    main()
