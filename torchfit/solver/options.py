@@ -1,0 +1,96 @@
+"""Options of the Levenberg–Marquardt solver and its error type.
+
+Tolerances follow MINPACK's ``lmder``/``lmdif`` (Moré, Garbow, Hillstrom, "User Guide for
+MINPACK-1", ANL-80-74, 1980): ``ftol`` bounds the relative reduction of the sum of squares,
+``xtol`` the relative size of the scaled step, ``gtol`` the cosine between the residual and the
+columns of the Jacobian.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from torchfit.errors import TorchfitError
+
+__all__ = ["LMOptions", "SolverError"]
+
+
+class SolverError(TorchfitError):
+    """Bad input to the solver (options, shapes, a residual or Jacobian of the wrong shape)."""
+
+
+@dataclass(frozen=True)
+class LMOptions:
+    """Options of :func:`torchfit.solver.levenberg_marquardt` (the same for every problem).
+
+    Attributes:
+        max_iter: trial steps per problem (each costs one residual evaluation; a new Jacobian
+            is computed only after an accepted step). Status ``MAX_ITER`` when reached.
+        ftol: stop when both the actual and the predicted relative reduction of the cost are
+            at most ``ftol`` (MINPACK info 1).
+        xtol: stop when the scaled step ``|D h|`` is at most ``xtol * |D x|`` (MINPACK info 2).
+        gtol: stop when the largest cosine between the residual and a Jacobian column is at
+            most ``gtol`` (MINPACK info 4).
+        initial_damping: ``mu`` at the start; the damped system is ``(JᵀJ + mu D²) h = -Jᵀr``.
+        min_diag, max_diag: clamp of the scaling ``D² = diag(JᵀJ)``.
+        accept_ratio: a step is accepted when the gain ratio exceeds this (MINPACK: 1e-4).
+        max_bad_steps: consecutive trial steps with a failed Cholesky factorisation or a
+            non-finite residual after which a problem fails (status ``NONFINITE`` or
+            ``LINALG``); each bad step multiplies its damping as a rejection does.
+        step_bound: MINPACK's ``factor``: a step longer than ``step_bound * |D x|`` (scaled
+            norms; ``step_bound`` where ``x = 0``) is shortened to that length. ``None``
+            disables it.
+        fold_batch: evaluate forward-mode and finite-difference Jacobians with one call of the
+            residual function on ``K`` stacked copies of the batch, ``(K*B, P)`` (row ``i``
+            belongs to problem ``i % B``). ``False`` makes ``K`` calls on ``(B, P)`` instead.
+    """
+
+    max_iter: int = 100
+    ftol: float = 1e-8
+    xtol: float = 1e-8
+    gtol: float = 1e-10
+    initial_damping: float = 1e-3
+    min_diag: float = 1e-12
+    max_diag: float = 1e32
+    accept_ratio: float = 1e-4
+    max_bad_steps: int = 10
+    step_bound: float | None = 100.0
+    fold_batch: bool = True
+
+    def __post_init__(self) -> None:
+        if isinstance(self.max_iter, bool) or not isinstance(self.max_iter, int):
+            raise SolverError(f"LMOptions.max_iter: expected an int, got {self.max_iter!r}")
+        if self.max_iter < 1:
+            raise SolverError(f"LMOptions.max_iter: expected >= 1, got {self.max_iter}")
+        for name in ("ftol", "xtol", "gtol"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise SolverError(f"LMOptions.{name}: expected a finite number >= 0, got {value!r}")
+        for name in ("initial_damping", "min_diag", "max_diag"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise SolverError(f"LMOptions.{name}: expected a finite number > 0, got {value!r}")
+        if self.step_bound is not None and (
+            not isinstance(self.step_bound, (int, float))
+            or not math.isfinite(self.step_bound)
+            or self.step_bound <= 0
+        ):
+            raise SolverError(
+                f"LMOptions.step_bound: expected None or a finite number > 0, got "
+                f"{self.step_bound!r}"
+            )
+        if self.min_diag > self.max_diag:
+            raise SolverError(
+                f"LMOptions.min_diag: expected <= max_diag ({self.max_diag}), got {self.min_diag}"
+            )
+        if not 0 <= self.accept_ratio < 1:
+            raise SolverError(
+                f"LMOptions.accept_ratio: expected a number in [0, 1), got {self.accept_ratio!r}"
+            )
+        if isinstance(self.max_bad_steps, bool) or not isinstance(self.max_bad_steps, int):
+            raise SolverError(
+                f"LMOptions.max_bad_steps: expected an int, got {self.max_bad_steps!r}"
+            )
+        if self.max_bad_steps < 1:
+            raise SolverError(f"LMOptions.max_bad_steps: expected >= 1, got {self.max_bad_steps}")
