@@ -1,0 +1,416 @@
+"""Write synthetic subject folders (design.md section 3) from anny bodies.
+
+One subject: a random phenotype (sex, adult age, height 1.50–2.00 m, thin to heavy), clothing
+and skin colours, a room, a light and a camera 3–4 m away at chest height at a random azimuth;
+the six postures of design.md section 4 (every free joint off nominal by up to ±10°, floor
+offset up to ±5 cm, yaw ±5°, lean ±2°), background frames, ``camera.yaml``, ``truth.json``
+(measurements of design.md section 5 via :func:`torchfit.measurements.measurements_from_joints`
+and ``joints_world`` per capture) and the stereo pair of design.md section 7. Subject ``i`` of
+seed ``S`` is drawn from ``numpy.random.default_rng([S, i])``: the same seed gives the same
+subjects, whatever ``n``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from torchfit.camera import look_at, save_camera, save_stereo_cameras
+from torchfit.errors import ConfigError
+from torchfit.measurements import JOINT_NAMES, measurements_from_joints
+from torchfit.synth.body import AnnyBody, Phenotype, PosedBody, load_anny
+from torchfit.synth.postures import POSTURES, STEREO_POSTURE, Posture, axis_angle, perturb
+from torchfit.synth.scene import Light, Room, finish, render, sample_camera, sample_room
+
+__all__ = ["SynthConfig", "make_subject", "make_subjects", "sample_phenotype"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SynthConfig:
+    """Options of ``tools/make_subjects.py`` (YAML keys, checked by ``load_config``)."""
+
+    image_size: list[int] = field(default_factory=lambda: [720, 576])  # [width, height]
+    background_frames: int = 5
+    stereo: bool = True
+    joint_noise_deg: float = 10.0
+    floor_offset_m: float = 0.05
+    yaw_deg: float = 5.0
+    lean_deg: float = 2.0
+    height_range_m: list[float] = field(default_factory=lambda: [1.50, 2.00])
+    camera_distance_m: list[float] = field(default_factory=lambda: [3.0, 4.0])
+    camera_height_m: list[float] = field(default_factory=lambda: [1.2, 1.45])
+    stereo_baseline_m: list[float] = field(default_factory=lambda: [0.2, 0.3])
+    noise_sigma: float = 2.0  # sensor noise, 8-bit grey levels
+    illumination_change: float = 0.04  # posture images vs background: gain within +-this
+    png_compression: int = 3
+
+    def __post_init__(self) -> None:
+        if len(self.image_size) != 2 or min(self.image_size) < 16:
+            raise ConfigError(
+                f"synth config: key 'image_size' expects [width, height], got {self.image_size}"
+            )
+        for key in ("height_range_m", "camera_distance_m", "camera_height_m", "stereo_baseline_m"):
+            value = getattr(self, key)
+            if len(value) != 2 or value[0] > value[1]:
+                raise ConfigError(f"synth config: key '{key}' expects [low, high], got {value}")
+        if self.background_frames < 5:
+            raise ConfigError(
+                f"synth config: key 'background_frames' must be >= 5, got {self.background_frames}"
+            )
+        if not 0 <= self.png_compression <= 9:
+            raise ConfigError(
+                f"synth config: key 'png_compression' must be in 0..9, got {self.png_compression}"
+            )
+
+
+# --------------------------------------------------------------------------------------------
+# Subjects
+
+_SKIN = np.array(
+    [
+        [0.93, 0.76, 0.65],
+        [0.87, 0.66, 0.52],
+        [0.76, 0.55, 0.40],
+        [0.60, 0.41, 0.29],
+        [0.45, 0.30, 0.21],
+        [0.33, 0.22, 0.16],
+    ]
+)
+_CLOTHES = np.array(
+    [
+        [0.10, 0.15, 0.35],
+        [0.15, 0.30, 0.60],
+        [0.12, 0.40, 0.20],
+        [0.55, 0.10, 0.12],
+        [0.20, 0.20, 0.22],
+        [0.45, 0.45, 0.48],
+        [0.05, 0.05, 0.06],
+        [0.30, 0.15, 0.40],
+        [0.10, 0.45, 0.50],
+        [0.85, 0.85, 0.88],
+        [0.70, 0.60, 0.10],
+    ]
+)
+_HAIR = np.array([[0.05, 0.04, 0.03], [0.22, 0.13, 0.07], [0.55, 0.42, 0.22], [0.6, 0.6, 0.6]])
+
+
+def sample_phenotype(rng: np.random.Generator) -> tuple[Phenotype, str]:
+    """A random adult phenotype (its ``height`` still 0.5) and its sex."""
+    sex = "female" if rng.random() < 0.5 else "male"
+    gender = rng.uniform(0.85, 1.0) if sex == "female" else rng.uniform(0.0, 0.15)
+    phen = Phenotype(
+        gender=gender,
+        age=rng.uniform(0.6, 0.95),
+        muscle=rng.uniform(0.1, 0.9),
+        weight=rng.uniform(0.05, 0.95),
+        height=0.5,
+        proportions=rng.uniform(0.3, 0.7),
+    )
+    return phen, sex
+
+
+def _neutral_height(body: AnnyBody) -> float:
+    v = body.pose({}).vertices
+    return float(v[:, 2].max() - v[:, 2].min())
+
+
+def _body_with_height(phen: Phenotype, target: float, model: Any) -> AnnyBody:
+    """Bisection on anny's height parameter for a neutral standing height of ``target``."""
+    lo, hi = 0.0, 1.0
+    body = None
+    for _ in range(12):
+        phen.height = 0.5 * (lo + hi)
+        body = AnnyBody(phen, model)
+        h = _neutral_height(body)
+        if abs(h - target) < 2e-3:
+            break
+        lo, hi = (phen.height, hi) if h < target else (lo, phen.height)
+    return body
+
+
+def _albedo(body: AnnyBody, rng: np.random.Generator) -> np.ndarray:
+    """(V, 3) albedo: skin for hands, face and neck; shirt, trousers, shoes, hair."""
+    bones = body.dominant_bones()
+    skin = _SKIN[rng.integers(len(_SKIN))] * rng.uniform(0.95, 1.05)
+    picks = rng.choice(len(_CLOTHES), size=2, replace=False)
+    shirt, trousers = _CLOTHES[picks[0]], _CLOTHES[picks[1]]
+    shoes = rng.choice(np.array([[0.05, 0.05, 0.05], [0.25, 0.15, 0.08], [0.8, 0.8, 0.8]]))
+    hair = _HAIR[rng.integers(len(_HAIR))]
+    neutral = body.pose({}).vertices
+    joints = body.pose({}).joints
+    hip_z = 0.5 * (joints["l_hip"][2] + joints["r_hip"][2])
+    waist = hip_z + 0.45 * (joints["neck"][2] - hip_z) * rng.uniform(0.35, 0.5)
+    out = np.zeros((len(bones), 3))
+    head_z = []
+    for k, b in enumerate(bones):
+        if b.startswith(("wrist", "finger", "metacarpal", "neck", "head", "eye")):
+            out[k] = skin
+            if b in ("head", "eye.L", "eye.R"):
+                head_z.append(k)
+        elif b.startswith(("foot", "toe")):
+            out[k] = shoes
+        elif b.startswith(("upperleg", "lowerleg")) or (
+            b.startswith(("pelvis", "root", "spine05", "spine04")) and neutral[k, 2] < waist
+        ):
+            out[k] = trousers
+        else:
+            out[k] = shirt
+    head = np.array(head_z)
+    top = neutral[body.head_top_vertex]
+    hv = neutral[head]
+    eye = top[2] - 0.11 * (top[2] - neutral[:, 2].min()) / 1.75
+    centre_y = hv[:, 1].mean()
+    hairy = (hv[:, 2] > eye + 0.04) | ((hv[:, 1] > centre_y + 0.02) & (hv[:, 2] > eye - 0.07))
+    out[head[hairy]] = hair
+    return out * rng.uniform(0.97, 1.03, size=(len(bones), 1))  # slight fabric/skin variation
+
+
+def _placement(rng: np.random.Generator, facing: float, cfg: SynthConfig) -> np.ndarray:
+    """(3, 3) rotation of a capture: yaw so anny's forward (-y) points along ``facing``
+    (plus jitter), then a small lean about a random horizontal axis."""
+    yaw = facing + math.radians(rng.uniform(-cfg.yaw_deg, cfg.yaw_deg))
+    Rz = axis_angle((0, 0, 1), yaw + math.pi / 2)
+    tilt_axis = rng.uniform(0, 2 * math.pi)
+    lean = axis_angle(
+        (math.cos(tilt_axis), math.sin(tilt_axis), 0.0),
+        math.radians(rng.uniform(-cfg.lean_deg, cfg.lean_deg)),
+    )
+    return lean @ Rz
+
+
+def _place(posed: PosedBody, rotation: np.ndarray, offset: np.ndarray) -> PosedBody:
+    v = posed.vertices @ rotation.T
+    shift = np.array([offset[0], offset[1], -v[:, 2].min()])
+    return PosedBody(
+        vertices=v + shift,
+        joints={k: rotation @ j + shift for k, j in posed.joints.items()},
+    )
+
+
+def _capture(
+    body: AnnyBody, posture: Posture, facing: float, rng: np.random.Generator, cfg: SynthConfig
+) -> tuple[PosedBody, dict[str, float]]:
+    angles = perturb(posture, rng, cfg.joint_noise_deg)
+    if posture.side_view:
+        facing = facing - math.pi / 2  # turned 90 degrees to the body's right
+    rotation = _placement(rng, facing, cfg)
+    offset = rng.uniform(-cfg.floor_offset_m, cfg.floor_offset_m, size=2)
+    return _place(body.pose(angles), rotation, offset), angles
+
+
+def _truth(body: AnnyBody) -> dict[str, float]:
+    neutral = _place(body.pose({}), np.eye(3), np.zeros(2))
+    height = float(neutral.vertices[:, 2].max())
+    t_pose = body.pose({"l_shoulder_abduct": 90.0, "r_shoulder_abduct": 90.0}).vertices
+    span = float(t_pose[:, 0].max() - t_pose[:, 0].min())
+    joints = {k: torch.tensor(v, dtype=torch.float64)[None] for k, v in neutral.joints.items()}
+    values = measurements_from_joints(
+        joints,
+        torch.tensor([height], dtype=torch.float64),
+        torch.tensor([span], dtype=torch.float64),
+    )
+    return {k: round(float(v[0]), 5) for k, v in values.items()}
+
+
+def _joints_json(posed: PosedBody) -> dict[str, list[float]]:
+    return {name: [round(float(x), 5) for x in posed.joints[name]] for name in JOINT_NAMES}
+
+
+def _sample_light(rng: np.random.Generator, azimuth: float) -> Light:
+    """Light from the camera's side, 20-60 degrees off its azimuth, 50-65 degrees high: the
+    shadow falls on the floor behind and beside the person."""
+    light_az = azimuth + rng.choice([-1, 1]) * math.radians(rng.uniform(20, 60))
+    light_el = math.radians(rng.uniform(50, 65))
+    direction = np.array(
+        [
+            math.cos(light_az) * math.cos(light_el),
+            math.sin(light_az) * math.cos(light_el),
+            math.sin(light_el),
+        ]
+    )
+    return Light(direction, ambient=rng.uniform(0.4, 0.5), diffuse=rng.uniform(0.55, 0.7))
+
+
+def _background_gain(rng: np.random.Generator) -> np.ndarray:
+    """(3,) per-channel gain of one background frame (slight flicker between frames)."""
+    return 1 + rng.normal(0, 0.004, 3)
+
+
+def _write_png(path: Path, rgb: np.ndarray, compression: int) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), rgb[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, compression]):
+        raise OSError(f"cannot write {path}")
+
+
+def _write_stereo(
+    stereo: Path,
+    body: AnnyBody,
+    faces: np.ndarray,
+    albedo: np.ndarray,
+    room: Room,
+    light: Light,
+    azimuth: float,
+    rng: np.random.Generator,
+    cfg: SynthConfig,
+) -> dict[str, list[float]]:
+    """The stereo pair of design.md section 7 (posture 5, two parallel cameras ``baseline``
+    apart, within 10 degrees of the main camera's azimuth); returns its joints_world."""
+    st_az = azimuth + math.radians(rng.uniform(-10, 10))
+    st_dist = rng.uniform(*cfg.camera_distance_m)
+    baseline = rng.uniform(*cfg.stereo_baseline_m)
+    st_horiz = np.array([math.cos(st_az), math.sin(st_az), 0.0])
+    rig = st_horiz * st_dist + np.array([0.0, 0.0, rng.uniform(*cfg.camera_height_m)])
+    st_target = np.array([0.0, 0.0, rng.uniform(1.0, 1.15)])
+    R, _ = look_at(torch.from_numpy(rig)[None], torch.from_numpy(st_target)[None])
+    right_axis = R[0, 0].numpy()  # camera x: image right
+    view_h = rng.uniform(2.7, 3.0)
+    size = (int(cfg.image_size[0]), int(cfg.image_size[1]))
+    cams = {}
+    for side, sign in (("left", -1.0), ("right", 1.0)):
+        c = rig + sign * 0.5 * baseline * right_axis
+        cams[side] = sample_camera(
+            rng, c, st_target + sign * 0.5 * baseline * right_axis, size, view_h
+        )
+    posed, _ = _capture(body, STEREO_POSTURE, math.atan2(rig[1], rig[0]), rng, cfg)
+    gain = 1 + rng.uniform(-cfg.illumination_change, cfg.illumination_change, 1) + np.zeros(3)
+    for side, cam in cams.items():
+        empty = render(room, cam, light, None)
+        for i in range(cfg.background_frames):
+            img = finish(empty, rng, _background_gain(rng), cfg.noise_sigma)
+            _write_png(
+                stereo / "background" / side / f"bg{i + 1:02d}.png",
+                img,
+                cfg.png_compression,
+            )
+        colour = render(room, cam, light, (posed.vertices, faces, albedo))
+        _write_png(
+            stereo / f"{side}.png",
+            finish(colour, rng, gain, cfg.noise_sigma),
+            cfg.png_compression,
+        )
+    save_stereo_cameras(cams["left"], cams["right"], stereo / "cameras.yaml")
+    return _joints_json(posed)
+
+
+def make_subject(
+    folder: str | Path,
+    seed: int,
+    index: int,
+    cfg: SynthConfig | None = None,
+    model: Any = None,
+) -> dict:
+    """Generate and write one subject folder.
+
+    Args:
+        folder: the subject folder to write (created).
+        seed, index: the subject is drawn from ``default_rng([seed, index])``.
+        cfg: options (defaults when None).
+        model: an anny model (default: :func:`torchfit.synth.body.load_anny`).
+
+    Returns:
+        A summary: phenotype, sex, camera azimuth and the truth measurements.
+    """
+    cfg = cfg or SynthConfig()
+    folder = Path(folder)
+    rng = np.random.default_rng([seed, index])
+    size = (int(cfg.image_size[0]), int(cfg.image_size[1]))
+    phen, sex = sample_phenotype(rng)
+    lo, hi = cfg.height_range_m
+    target = (
+        rng.uniform(lo, min(hi, lo + 0.35))
+        if sex == "female"
+        else rng.uniform(max(lo, hi - 0.4), hi)
+    )
+    body = _body_with_height(phen, target, model)
+    faces = body.faces
+    v = body.pose({}).vertices
+    volume = np.einsum("ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]], v[faces[:, 2]])).sum()
+    if volume < 0:  # make the triangles counter-clockwise seen from outside (outward normals)
+        faces = faces[:, ::-1].copy()
+    albedo = _albedo(body, rng)
+
+    azimuth = rng.uniform(0, 2 * math.pi)
+    distance = rng.uniform(*cfg.camera_distance_m)
+    cam_h = rng.uniform(*cfg.camera_height_m)
+    room = sample_room(rng, azimuth, distance)
+    light = _sample_light(rng, azimuth)
+    horiz = np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
+    centre = horiz * distance + np.array([0.0, 0.0, cam_h])
+    target_pt = np.array([*rng.uniform(-0.05, 0.05, 2), rng.uniform(0.95, 1.05)])
+    camera = sample_camera(rng, centre, target_pt, size, rng.uniform(2.6, 2.9))
+    facing = math.atan2(centre[1], centre[0])
+
+    truth = _truth(body)
+    joints_world = {}
+    empty = render(room, camera, light, None)
+    for i in range(cfg.background_frames):
+        img = finish(empty, rng, _background_gain(rng), cfg.noise_sigma)
+        _write_png(folder / "background" / f"bg{i + 1:02d}.png", img, cfg.png_compression)
+    for posture in POSTURES:
+        posed, _ = _capture(body, posture, facing, rng, cfg)
+        joints_world[f"pose{posture.index}"] = _joints_json(posed)
+        colour = render(room, camera, light, (posed.vertices, faces, albedo))
+        gain = (
+            1
+            + rng.uniform(-cfg.illumination_change, cfg.illumination_change)
+            + rng.normal(0, 0.005, 3)
+        )
+        img = finish(colour, rng, gain, cfg.noise_sigma)
+        _write_png(folder / "poses" / f"pose{posture.index}.png", img, cfg.png_compression)
+    save_camera(camera, folder / "camera.yaml")
+
+    if cfg.stereo:
+        joints_world["stereo"] = _write_stereo(
+            folder / "stereo", body, faces, albedo, room, light, azimuth, rng, cfg
+        )
+
+    truth["joints_world"] = joints_world
+    (folder / "truth.json").write_text(json.dumps(truth, indent=1))
+    summary = {
+        "subject": folder.name,
+        "seed": seed,
+        "index": index,
+        "sex": sex,
+        "phenotype": phen.as_dict(),
+        "camera_azimuth_deg": round(math.degrees(azimuth) % 360, 2),
+        **{k: v for k, v in truth.items() if k != "joints_world"},
+    }
+    (folder / "synth.json").write_text(json.dumps(summary, indent=1))
+    log.debug("wrote %s: %s", folder, summary)
+    return summary
+
+
+def make_subjects(
+    out: str | Path,
+    n: int,
+    seed: int,
+    cfg: SynthConfig | None = None,
+    progress: Callable[[Iterable[int]], Iterable[int]] | None = None,
+) -> list[dict]:
+    """Write ``n`` subjects ``subject_000`` … into ``out``.
+
+    Args:
+        out: the dataset folder.
+        n: number of subjects.
+        seed: dataset seed; subject ``i`` is drawn from ``default_rng([seed, i])``.
+        cfg: options (defaults when None).
+        progress: wraps the subject indices (e.g. ``tqdm``).
+
+    Returns:
+        The summaries of :func:`make_subject`.
+    """
+    model = load_anny()
+    out = Path(out)
+    indices: Iterable[int] = range(n) if progress is None else progress(range(n))
+    return [make_subject(out / f"subject_{i:03d}", seed, i, cfg, model) for i in indices]
