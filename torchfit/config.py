@@ -75,23 +75,34 @@ class SegmentationConfig:
 
     threshold: float = 4.0  # Mahalanobis distance above which a pixel is the person
     gamma: float = 0.3  # weight of lightness against the hue/saturation disc, in [0, 1]
+    color_space: Literal["hsl", "rgb"] = "hsl"  # "rgb" is the baseline, for comparisons only
+    regularization: float = 1.0  # variance added to the covariance diagonal, (8-bit levels)^2
     min_background_frames: int = 5
     background: Literal["frames", "temporal_median"] = "frames"
     open_kernel: int = 3
     close_kernel: int = 7
+    largest_region: bool = True  # keep only the largest region (one person); false keeps all
     fill_holes: bool = True
     distance: Literal["chamfer", "euclidean"] = "chamfer"
 
 
 @dataclass
 class SolverConfig:
-    """Levenberg–Marquardt options (see :class:`torchfit.solver.LMOptions`)."""
+    """Levenberg–Marquardt options: the fields of :class:`torchfit.solver.LMOptions` (same
+    names, meanings and defaults) plus the Jacobian choice."""
 
     max_iter: int = 100
     ftol: float = 1e-8
     xtol: float = 1e-8
     gtol: float = 1e-10
-    jacobian: Literal["autograd", "numeric"] = "autograd"
+    initial_damping: float = 1e-3
+    min_diag: float = 1e-12
+    max_diag: float = 1e32
+    accept_ratio: float = 1e-4
+    max_bad_steps: int = 10
+    step_bound: float | None = 100.0
+    fold_batch: bool = True
+    jacobian: Literal["autograd", "forward", "reverse", "numeric"] = "autograd"
 
 
 @dataclass
@@ -117,6 +128,15 @@ class FitConfig:
     )
     poses: list[int] = field(default_factory=lambda: [1, 2, 3, 4, 5, 6])
     initial_guess: Literal["template", "parts"] = "template"
+    # per-pose free joints, e.g. {pose3: [l_knee_flexion, ...]}; default: design.md section 4
+    free_joints: dict[str, list[str]] | None = None
+    translation_max_m: float = 0.15  # floor translation interval, each axis
+    yaw_max_deg: float = 15.0  # yaw interval around the nominal view
+    tilt_max_deg: float = 5.0  # roll / pitch interval
+    barrier_weight: float = 100.0  # e_B slope outside an interval
+    samples_per_edge: int = 4  # model contour candidates per mesh edge
+    contour_tolerance_px: float = 1.0  # a sample within this of the rendered contour is on it
+    contour_stride: int = 1  # use every n-th person contour pixel in e_P
 
 
 @dataclass

@@ -170,7 +170,8 @@ class BodyModel:
             scales: (B, S, 3) per-segment scales in each segment's frame (1 = template).
             joint_angles: (B, Q) radians, order :attr:`dof_names`.
             root_translation: (B, 3) world position of the root segment origin, metres.
-            root_rotation: (B, 3) axis-angle of the root frame in the world, radians.
+            root_rotation: (B, 3) axis-angle of the root frame in the world, radians, or
+                (B, 3, 3) rotation matrices.
 
         Returns:
             :class:`BodyOutput` with (B, V, 3) vertices, (B, S, 3) origins and
@@ -180,8 +181,12 @@ class BodyModel:
         check_shape("scales", scales, (b, self.num_segments, 3))
         check_shape("joint_angles", joint_angles, (b, self.num_dofs))
         check_shape("root_translation", root_translation, (b, 3))
-        check_shape("root_rotation", root_rotation, (b, 3))
-        rot_root = axis_angle_to_matrix(root_rotation)  # (B, 3, 3)
+        if root_rotation.dim() == 3:
+            check_shape("root_rotation", root_rotation, (b, 3, 3))
+            rot_root = root_rotation
+        else:
+            check_shape("root_rotation", root_rotation, (b, 3))
+            rot_root = axis_angle_to_matrix(root_rotation)  # (B, 3, 3)
         rot = rot_root[:, None] @ self.chain.rotations(joint_angles)  # (B, S, 3, 3)
 
         # positions, level by level: p_c = p_parent + R_parent (σ_parent ⊙ o_c)
