@@ -1,0 +1,152 @@
+"""A subject's stereo pair → segmented views → labelled joints → 3-D joints → lengths.
+
+Conventions as in :mod:`torchfit.parts.stereo`. One subject whose rules fail gets a status and
+a reason (``"left view: neck: ..."``); it never raises for content, so a batch run finishes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from torchfit.config import PartsConfig, SegmentationConfig
+from torchfit.io.dataset import StereoInfo
+from torchfit.io.images import load_frames, read_image
+from torchfit.parts.correspond import corresponding_joints
+from torchfit.parts.decompose import decompose_cactus, fill_holes
+from torchfit.parts.rules import Labelling
+from torchfit.parts.stereo import stereo_measurements, triangulate_midpoint
+from torchfit.segmentation import fit_background, segment
+
+__all__ = ["ViewResult", "StereoResult", "segment_view", "measure_stereo_pair"]
+
+
+@dataclass
+class ViewResult:
+    """One view of the stereo pair.
+
+    Attributes:
+        image: ``(H, W, 3)`` uint8 RGB.
+        mask: ``(H, W)`` bool silhouette.
+        labelling: the joints found on it.
+    """
+
+    image: np.ndarray
+    mask: np.ndarray
+    labelling: Labelling
+
+
+@dataclass
+class StereoResult:
+    """The stereo measurement of one subject.
+
+    Attributes:
+        status: ``"ok"`` or ``"failed"``.
+        failed_rule: the rule that failed (``"segmentation"``, ``"contour"``, a rule of
+            :data:`torchfit.parts.rules.RULE_NAMES`), None when ok.
+        message: the reason, naming the view ("" when ok).
+        joints_world: joint name -> ``[x, y, z]`` metres (empty when failed).
+        ray_gap_m: joint name -> distance between the two viewing rays, metres.
+        measurements: key -> metres (empty when failed).
+        views: ``"left"``, ``"right"`` -> :class:`ViewResult` (those that were processed).
+        pixels: ``"left"``, ``"right"`` -> joint name -> ``(2,)`` the pixels triangulated
+            (after stereo matching, when on).
+    """
+
+    status: str = "failed"
+    failed_rule: str | None = None
+    message: str = ""
+    joints_world: dict[str, list[float]] = field(default_factory=dict)
+    ray_gap_m: dict[str, float] = field(default_factory=dict)
+    measurements: dict[str, float] = field(default_factory=dict)
+    views: dict[str, ViewResult] = field(default_factory=dict)
+    pixels: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+
+
+def segment_view(
+    image_path, background_paths, config: SegmentationConfig
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Segment one view against its background frames.
+
+    Returns:
+        ``(image, mask)``: ``(H, W, 3)`` uint8 RGB and ``(H, W)`` bool with its holes left
+        unfilled, or None when no person was found.
+    """
+    image = read_image(image_path)
+    # Holes stay open: a hole between the legs marks the crotch (decompose_cactus fills the
+    # rest itself).
+    config = dataclasses.replace(config, fill_holes=False)
+    frames, _ = load_frames(background_paths, size=(image.shape[1], image.shape[0]))
+    model = fit_background(frames, config)
+    img = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255.0
+    result = segment(img, model, config)
+    if not bool(result.found[0]):
+        return image, None
+    return image, result.masks[0, 0].cpu().numpy()
+
+
+def measure_stereo_pair(
+    stereo: StereoInfo,
+    parts: PartsConfig | None = None,
+    segmentation: SegmentationConfig | None = None,
+) -> StereoResult:
+    """Segment, label and triangulate one subject's posture-5 stereo pair.
+
+    Args:
+        stereo: the subject's :class:`~torchfit.io.dataset.StereoInfo`.
+        parts: decomposition options.
+        segmentation: background subtraction options (for the synthetic rooms with floor
+            shadows use ``gamma: 0.05``).
+
+    Returns:
+        A :class:`StereoResult`; failures carry the rule and the view.
+
+    Raises:
+        DataError: an image or background frame cannot be read.
+    """
+    parts = parts or PartsConfig()
+    segmentation = segmentation or SegmentationConfig()
+    out = StereoResult()
+    for side in ("left", "right"):
+        image, mask = segment_view(
+            getattr(stereo, f"{side}_image"), getattr(stereo, f"background_{side}"), segmentation
+        )
+        if mask is None:
+            out.failed_rule, out.message = "segmentation", f"{side} view: no person found"
+            return out
+        labelling = decompose_cactus(mask, image, parts)
+        out.views[side] = ViewResult(image, mask, labelling)
+        if not labelling.ok:
+            out.failed_rule = labelling.failed_rule
+            out.message = f"{side} view: {labelling.failed_rule}: {labelling.message}"
+            return out
+    left, right = out.views["left"].labelling, out.views["right"].labelling
+    jl, jr = left.joints, right.joints
+    if parts.stereo_match:
+        _, _, trunk = left.body_frame()
+        jl, jr = corresponding_joints(
+            fill_holes(out.views["left"].mask),
+            fill_holes(out.views["right"].mask),
+            left.joints,
+            right.joints,
+            left.anchors,
+            right.anchors,
+            stereo.left,
+            stereo.right,
+            parts.match_radius * trunk,
+            parts.match_search_px,
+        )
+    out.pixels = {"left": jl, "right": jr}
+    names = [n for n in jl if n in jr]
+    pl = torch.tensor(np.stack([jl[n] for n in names]), dtype=torch.float64)[None]
+    pr = torch.tensor(np.stack([jr[n] for n in names]), dtype=torch.float64)[None]
+    points, gap = triangulate_midpoint(pl, stereo.left, pr, stereo.right)
+    joints = {n: points[:, i] for i, n in enumerate(names)}
+    out.joints_world = {n: [float(x) for x in points[0, i]] for i, n in enumerate(names)}
+    out.ray_gap_m = {n: float(gap[0, i]) for i, n in enumerate(names)}
+    out.measurements = {k: float(v[0]) for k, v in stereo_measurements(joints).items()}
+    out.status = "ok"
+    return out
