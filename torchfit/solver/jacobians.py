@@ -222,7 +222,10 @@ def make_jacobian(
 
     ``"autograd"`` picks forward mode when ``P <= M`` and reverse mode otherwise; ``"forward"``,
     ``"reverse"`` and ``"numeric"`` force one; a callable ``x (B, P) -> (B, M, P)`` is used as
-    given (masked entries are zeroed).
+    given (masked entries are zeroed). A callable may also return ``(J, r)``: the Jacobian and
+    a *refreshed* residual at ``x``, for problems whose residual is redefined between steps
+    (data association, e.g. contour correspondences); the solver then takes ``r`` and its
+    cost as the values at ``x`` for the problems it updates.
 
     Raises:
         SolverError: for an unknown ``jacobian`` string, or (when called) a callable that
@@ -231,12 +234,28 @@ def make_jacobian(
     if callable(jacobian):
         user = jacobian
 
-        def call_user(x: torch.Tensor, r: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
-            jac = user(x)
+        def call_user(x: torch.Tensor, r: torch.Tensor, mask: torch.Tensor | None):
+            out = user(x)
+            refreshed = None
+            if isinstance(out, tuple):
+                if len(out) != 2:
+                    raise SolverError(
+                        f"jacobian: expected J or a pair (J, r), got a tuple of {len(out)}"
+                    )
+                out, refreshed = out
+                if not isinstance(refreshed, torch.Tensor) or refreshed.shape != r.shape:
+                    got = getattr(refreshed, "shape", type(refreshed).__name__)
+                    raise SolverError(
+                        f"jacobian: the refreshed residual must have shape {tuple(r.shape)}, "
+                        f"got {tuple(got) if isinstance(got, torch.Size) else got}"
+                    )
+                refreshed = _apply_mask(refreshed.detach().to(x.dtype)[:, :, None], mask)[..., 0]
+            jac = out
             if not isinstance(jac, torch.Tensor) or tuple(jac.shape) != (x.shape[0], m, p):
                 got = tuple(jac.shape) if isinstance(jac, torch.Tensor) else type(jac).__name__
                 raise SolverError(f"jacobian: expected shape ({x.shape[0]}, {m}, {p}), got {got}")
-            return _apply_mask(jac.detach().to(x.dtype), mask)
+            jac = _apply_mask(jac.detach().to(x.dtype), mask)
+            return jac if refreshed is None else (jac, refreshed)
 
         return call_user
     if jacobian == "autograd":

@@ -97,7 +97,10 @@ def levenberg_marquardt(
         options: tolerances and limits, the same for every problem (default ``LMOptions()``).
         jacobian: ``"autograd"`` (forward mode when ``P <= M``, else reverse mode),
             ``"forward"``, ``"reverse"``, ``"numeric"`` (forward differences,
-            ``h = sqrt(eps) * max(1, |x|)``) or a callable ``x (B, P) -> J (B, M, P)``.
+            ``h = sqrt(eps) * max(1, |x|)``) or a callable ``x (B, P) -> J (B, M, P)``. The
+            callable may return ``(J, r)`` to refresh the residual at ``x`` as well: each
+            trial step is then judged against the residual of the last refresh, which lets
+            a problem redefine its residual (re-associate data) after every accepted step.
         callback: called after every iteration with an :class:`LMIterate` of detached values;
             returning ``True`` stops every running problem with status ``STOPPED``.
         lower, upper: optional bounds, ``(P,)`` or ``(B, P)``, ``±inf`` for none. Handled by
@@ -181,6 +184,10 @@ def levenberg_marquardt(
             upd = running & need_jac
             if bool(upd.any()):
                 jac = jac_fn(x, r, mask)
+                if isinstance(jac, tuple):  # a user Jacobian that also refreshes r at x
+                    jac, r_new = jac
+                    r = torch.where(upd[:, None], r_new, r)
+                    cost = torch.where(upd, cost_of(r_new), cost)
                 njev += upd.long()
                 jac_ok = torch.isfinite(jac).flatten(1).all(dim=1)
                 status[upd & ~jac_ok] = LMStatus.NONFINITE

@@ -22,6 +22,7 @@ def minpack_baseline(
     x0: torch.Tensor,
     options: LMOptions | None = None,
     max_nfev: int | None = None,
+    epsfcn: float | None = None,
 ) -> LMResult:
     """Solve each problem of the batch alone with MINPACK's ``lmdif``.
 
@@ -40,6 +41,9 @@ def minpack_baseline(
             ``max_nfev`` or, by default, ``max_iter * (P + 1)`` (each MINPACK iteration spends
             ``P`` evaluations on the Jacobian and one on the trial point).
         max_nfev: MINPACK's ``maxfev`` (residual evaluations, Jacobian columns included).
+        epsfcn: MINPACK's ``epsfcn``: the forward-difference step is
+            ``sqrt(max(epsfcn, eps)) * |x_j|`` (default: machine precision). Residuals that
+            are piecewise constant at small scales (rendered pixels) need a larger value.
 
     Returns:
         :class:`~torchfit.solver.LMResult`: ``status`` is MINPACK's ``info`` (1–8; 0 for
@@ -79,6 +83,7 @@ def minpack_baseline(
             xtol=opts.xtol,
             gtol=opts.gtol,
             maxfev=maxfev,
+            epsfcn=epsfcn,
         )
         sol = np.atleast_1d(sol)
         fvec = info["fvec"]
