@@ -14,6 +14,8 @@ from template_subjects import make_template_subject
 from torchfit.body.model import BodyModel
 
 REPO = Path(__file__).resolve().parents[1]
+# a short fit: the pipeline is under test here, not the accuracy (see tests/test_fitting.py)
+FAST = ("--set", "solver.max_iter=2", "--set", "fit.contour_stride=3")
 
 
 @pytest.fixture(scope="module")
@@ -48,6 +50,7 @@ def test_fit_cli_writes_outputs_and_survives_a_bad_subject(dataset, tmp_path):
         out,
         "--set",
         "run.name=test",
+        *FAST,
     )
     assert proc.returncode == 1, proc.stderr  # one subject failed
     rows = {r["subject"]: r for r in csv.DictReader((out / "summary.csv").open())}
@@ -55,7 +58,7 @@ def test_fit_cli_writes_outputs_and_survives_a_bad_subject(dataset, tmp_path):
     assert rows["broken"]["status"] == "failed"
     assert "pose4" in rows["broken"]["message"]
     for name in ("alice", "bob"):
-        assert rows[name]["status"] == "template"
+        assert rows[name]["status"] == "ok", rows[name]["message"]
         folder = out / name
         for f in (
             "measurements.json",
@@ -67,13 +70,14 @@ def test_fit_cli_writes_outputs_and_survives_a_bad_subject(dataset, tmp_path):
             assert (folder / f).is_file(), f
         params = json.loads((folder / "params.json").read_text())
         assert set(params["poses"]) == {f"pose{i}" for i in range(1, 7)}
+    assert list((out / "tb").glob("events.out.tfevents*")), "no TensorBoard event file"
     resolved = yaml.safe_load((out / "config.yaml").read_text())
     assert resolved["run"]["name"] == "test"
     assert resolved["data"]["root"] == str(dataset)
 
     # a second run resumes: finished subjects are not redone
     before = (out / "alice" / "measurements.json").stat().st_mtime_ns
-    again = fit("--config", REPO / "configs/demo.yaml", "--data", dataset, "--out", out)
+    again = fit("--config", REPO / "configs/demo.yaml", "--data", dataset, "--out", out, *FAST)
     assert "resumed" in again.stdout
     assert (out / "alice" / "measurements.json").stat().st_mtime_ns == before
 

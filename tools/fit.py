@@ -2,8 +2,11 @@
 
     python tools/fit.py --config configs/demo.yaml [--data DIR] [--out DIR] [--set key=value ...]
 
-Writes runs/<run.name>/ (or --out): config.yaml, summary.csv and per subject
-measurements.json, params.json, model.urdf + meshes/, model.glb and overlay_pose1..6.png.
+Segments the six posture images of every subject, fits the template body (batched
+Levenberg-Marquardt, autograd Jacobian; ``--set solver.jacobian=numeric`` runs the paper's
+rendered-contour MINPACK baseline instead) and writes runs/<run.name>/ (or --out):
+config.yaml, summary.csv, tb/ and per subject measurements.json, params.json,
+model.urdf + meshes/, model.glb and overlay_pose1..6.png. A rerun skips finished subjects.
 """
 
 from __future__ import annotations
@@ -29,7 +32,9 @@ def main(argv: list[str] | None = None) -> int:
         run_dir = run_folder(config)
         from torchfit.pipeline import run
 
-        results = run(config, run_dir, progress=lambda s: tqdm(s, desc="subjects", unit="subject"))
+        results = run(
+            config, run_dir, progress=lambda n: tqdm(total=n, desc="subjects", unit="subject")
+        )
     except TorchfitError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -37,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in results:
         height = r.measurements.get("height_m")
         h = f"height {height:.3f} m" if height is not None else ""
-        print(f"{r.name:>16}  {r.status:<9} {h}  {r.message}")
+        print(f"{r.name:>16}  {r.status:<7} {h}  {r.message}")
     print(f"outputs in {run_dir}/ ({len(results) - len(failed)} of {len(results)} subjects)")
     return 1 if failed else 0
 

@@ -30,6 +30,7 @@ __all__ = [
     "StageConfig",
     "FitConfig",
     "OutputConfig",
+    "PartsConfig",
     "Config",
     "load_config",
     "config_from_dict",
@@ -50,6 +51,7 @@ class RunConfig:
     dtype: Literal["float32", "float64"] = "float64"
     seed: int = 0
     resume: bool = True  # skip subjects whose outputs are complete
+    num_threads: int | None = None  # torch CPU threads (None: torch's default)
 
 
 @dataclass
@@ -128,6 +130,7 @@ class FitConfig:
     )
     poses: list[int] = field(default_factory=lambda: [1, 2, 3, 4, 5, 6])
     initial_guess: Literal["template", "parts"] = "template"
+    batch_size: int = 4  # subjects solved together in one batched LM run
     # per-pose free joints, e.g. {pose3: [l_knee_flexion, ...]}; default: design.md section 4
     free_joints: dict[str, list[str]] | None = None
     translation_max_m: float = 0.15  # floor translation interval, each axis
@@ -149,6 +152,40 @@ class OutputConfig:
 
 
 @dataclass
+class PartsConfig:
+    """Silhouette part decomposition (second paper): spline, curvature extrema, rules, wrists.
+
+    Lengths given as fractions are relative to the silhouette height ``H`` (curve options) or to
+    the 2-D trunk length ``T`` (neck cut middle to crotch; joint offsets), so that they do not
+    depend on the image scale. See ``torchfit.parts`` for the rules.
+    """
+
+    smoothing_px: float = 1.0  # RMS distance spline - contour pixels (0: interpolation)
+    point_spacing: int = 1  # use every n-th contour pixel
+    min_curvature: float = 8.0  # significance: |curvature| * H above this
+    min_separation: float = 0.02  # extrema closer than this * H along the outline merge
+    hand_exclusion: float = 0.25  # inner-elbow candidates > this * T above the neck are hands
+    wrists: bool = True  # find the wrists from skin colour
+    skin_threshold: float = 3.0  # Mahalanobis distance to the face's skin chromaticity
+    hand_start: float = 0.4  # hand pixels lie beyond this fraction of elbow -> hand tip
+    face_band: float = 0.45  # skin is learnt this fraction of the way from the neck to the top
+    # Systematic cut-point -> joint-centre corrections (torchfit.parts.JointOffsets):
+    # (down, out) in units of the 2-D trunk length, per joint; the median of label -> projected
+    # joint centre on synthetic dev subjects (seed 1000), never the test set.
+    offset_back: list[float] = field(default_factory=lambda: [-0.173, 0.0])
+    offset_neck: list[float] = field(default_factory=lambda: [0.016, 0.0])
+    offset_shoulder: list[float] = field(default_factory=lambda: [0.028, 0.059])
+    offset_elbow: list[float] = field(default_factory=lambda: [0.021, 0.029])
+    offset_wrist: list[float] = field(default_factory=lambda: [-0.013, 0.017])
+    # Stereo correspondence: refine each joint's right-view pixel by matching the two
+    # silhouettes along the epipolar line around its outline anchors (false: the paper's
+    # independent labelling of both views).
+    stereo_match: bool = True
+    match_radius: float = 0.1  # matching window half-size, * T
+    match_search_px: float = 8.0  # search +- this along the epipolar line, pixels
+
+
+@dataclass
 class Config:
     """The whole configuration of a tool run."""
 
@@ -159,6 +196,7 @@ class Config:
     solver: SolverConfig = field(default_factory=SolverConfig)
     fit: FitConfig = field(default_factory=FitConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    parts: PartsConfig = field(default_factory=PartsConfig)
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,13 +1,16 @@
 """Wire the stages for a dataset; the only place a config enters the library.
 
-Per subject: validate the folder, segment the six posture images against the background
-frames, build the template body, pose it at the six nominal postures facing the subject's
-camera, and write measurements, parameters, the exchangeable model and overlays of the model
-contour (green) over the person's contour (magenta) on every posture image. The per-subject
-parameters are what the fit (the first paper's Levenberg–Marquardt) refines; until it runs,
-``status`` says ``template`` and the measurements are the template's.
+Per subject: validate the folder and segment the six posture images against the background
+frames. Then, in batches of ``fit.batch_size`` subjects: build the person contours and
+distance maps, start from the template at the nominal postures, and run the fit's stages
+(batched Levenberg–Marquardt with the autograd Jacobian, or the paper's rendered-contour
+MINPACK baseline with ``solver.jacobian: numeric``). Each subject gets measurements.json,
+params.json, the fitted model (URDF + meshes, GLB/OBJ) and overlays of the fitted model
+contour (green) on the person contour (magenta) for every posture; the run gets summary.csv,
+the resolved config and TensorBoard event files under ``tb/``.
 
-One bad subject never stops the others: it gets ``status = failed`` and the reason.
+One bad subject never stops the others: it gets ``status = failed`` and the reason, and what
+finished is on disk (a rerun resumes, skipping finished subjects).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,22 +29,24 @@ import torch
 
 from torchfit.body.measure import measure_model
 from torchfit.body.model import BodyModel
-from torchfit.body.postures import POSTURES, pose_nominal
-from torchfit.camera import camera_centre, project_points
+from torchfit.body.postures import POSTURES
+from torchfit.camera import stack_cameras
 from torchfit.config import Config, save_config
-from torchfit.errors import DataError, TorchfitError
+from torchfit.errors import DataError, SegmentationError, TorchfitError
+from torchfit.fitting import SilhouetteFit, person_data_from_masks
 from torchfit.io.dataset import Subject, load_dataset
 from torchfit.io.export import export_mesh, export_urdf, write_json
 from torchfit.io.images import load_frames
 from torchfit.measurements import MEASUREMENT_KEYS
-from torchfit.render import draw_polyline, render_silhouette
+from torchfit.render import draw_polyline
 from torchfit.segmentation import fit_background, segment
 
-__all__ = ["SubjectResult", "run", "process_subject"]
+__all__ = ["SubjectResult", "run", "segment_subject", "fit_batch", "write_summary"]
 
 log = logging.getLogger(__name__)
 
 _DONE_FILES = ("measurements.json", "params.json")
+_FAILED = {"NONFINITE", "LINALG"}
 
 
 @dataclass
@@ -48,7 +54,7 @@ class SubjectResult:
     """Outcome of one subject (a row of summary.csv)."""
 
     name: str
-    status: str  # "template", "ok", "failed"
+    status: str  # "ok", "failed"
     message: str = ""
     measurements: dict[str, float] = field(default_factory=dict)
     final_cost: float | None = None
@@ -67,6 +73,39 @@ class SubjectResult:
         return row
 
 
+@dataclass
+class _Prepared:
+    subject: Subject
+    images: torch.Tensor  # (6, 3, H, W) RGB in [0, 1]
+    masks: torch.Tensor  # (6, H, W) bool
+    seconds: float
+
+
+def segment_subject(subject: Subject, config: Config) -> tuple[torch.Tensor, torch.Tensor]:
+    """Segment a subject's six posture images.
+
+    Returns:
+        images (6, 3, H, W) in [0, 1] and silhouettes (6, H, W) bool.
+
+    Raises:
+        DataError: invalid subject folder; SegmentationError: no person in a posture image.
+    """
+    if subject.problems:
+        raise DataError("; ".join(subject.problems))
+    size = subject.camera.image_size
+    background, _ = load_frames(subject.background, size=size)
+    images, _ = load_frames(subject.poses, size=size)
+    seg = segment(images, fit_background(background, config.segmentation), config.segmentation)
+    missing = [
+        f"pose{i + 1} ({subject.poses[i].name})"
+        for i, ok in enumerate(seg.found.tolist())
+        if not ok
+    ]
+    if missing:
+        raise SegmentationError(f"no person found in {', '.join(missing)}")
+    return images, seg.masks[:, 0]
+
+
 def _outline(mask: np.ndarray) -> list[np.ndarray]:
     import cv2
 
@@ -74,93 +113,196 @@ def _outline(mask: np.ndarray) -> list[np.ndarray]:
     return [c[:, 0, :].astype(np.float64) for c in contours]
 
 
-def _overlay(image: np.ndarray, person: np.ndarray | None, model_mask: np.ndarray, label: str):
+def _overlay(image: np.ndarray, person: np.ndarray, model_mask: np.ndarray, label: str):
+    """RGB overlay: person contour magenta, model contour green, a label."""
     import cv2
 
-    out = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    if person is not None:
-        for c in _outline(person):
-            draw_polyline(out, c, (255, 0, 255), thickness=2)
+    out = image.copy()
+    for c in _outline(person):
+        draw_polyline(out, c, (255, 0, 255), thickness=2)
     for c in _outline(model_mask):
         draw_polyline(out, c, (0, 200, 0), thickness=2)
-    cv2.putText(out, label, (10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 0, 0), 3)
-    cv2.putText(out, label, (10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 1)
+    cv2.putText(out, label, (10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 3)
+    cv2.putText(out, label, (10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 0, 0), 1)
     return out
 
 
-def process_subject(
-    subject: Subject, model: BodyModel, config: Config, folder: Path
-) -> SubjectResult:
-    """Process one subject and write its outputs under ``folder``.
+def _status_name(code: int) -> str:
+    from torchfit.solver import LMStatus
 
-    Raises:
-        TorchfitError: for bad input (the caller turns it into a failed status).
+    try:
+        return LMStatus(code).name
+    except ValueError:
+        return str(code)
+
+
+def fit_batch(
+    prepared: list[_Prepared],
+    model: BodyModel,
+    config: Config,
+    run_dir: Path,
+    tb=None,
+) -> list[SubjectResult]:
+    """Fit a batch of segmented subjects and write their outputs.
+
+    Args:
+        prepared: the segmented subjects.
+        model: the body model.
+        config: the resolved config.
+        run_dir: the run folder (subject outputs go to ``run_dir / name``).
+        tb: optional TensorBoard logger (:class:`torchfit.tb_logging.TensorBoardCallback`).
     """
-    import cv2
+    from torchfit.solver import LMOptions
 
     start = time.perf_counter()
-    if subject.problems:
-        raise DataError("; ".join(subject.problems))
-    cam = subject.camera
-    background, _ = load_frames(subject.background, size=cam.image_size)
-    images, _ = load_frames(subject.poses, size=cam.image_size)
-    seg = segment(images, fit_background(background, config.segmentation), config.segmentation)
-    missing = [f"pose{i + 1}" for i, ok in enumerate(seg.found.tolist()) if not ok]
-    if missing:
-        log.warning("%s: no person found in %s", subject.name, ", ".join(missing))
+    names = [p.subject.name for p in prepared]
+    masks = torch.stack([p.masks for p in prepared])
+    cameras = stack_cameras([p.subject.camera for p in prepared])
+    person = person_data_from_masks(
+        masks, cameras, config.segmentation.distance, config.fit.contour_stride, model.dtype
+    )
+    fit = SilhouetteFit(model, person, config.fit, config.model)
+    x = fit.initial_params()
+    solver_cfg = config.solver
+    stages_out: list[list[dict]] = [[] for _ in prepared]
+    for si, stage in enumerate(config.fit.stages):
+        options = LMOptions(
+            max_iter=stage.max_iter or solver_cfg.max_iter,
+            ftol=solver_cfg.ftol,
+            xtol=solver_cfg.xtol,
+            gtol=solver_cfg.gtol,
+            initial_damping=solver_cfg.initial_damping,
+            step_bound=solver_cfg.step_bound,
+        )
+        tag = f"stage{si + 1}_{stage.name}"
+        if solver_cfg.jacobian == "numeric":
+            from torchfit.baseline import minpack_stage
 
-    dtype = model.dtype
-    scales = torch.ones(1, model.num_segments, 3, dtype=dtype, device=model.device)
-    centre = camera_centre(cam.R, cam.t).to(dtype)
-    camera = cam.to(dtype=dtype)
-    folder.mkdir(parents=True, exist_ok=True)
-    poses = {}
-    for posture in POSTURES:
-        params, out = pose_nominal(model, scales, posture, centre)
-        poses[f"pose{posture.index}"] = {
-            "name": posture.name,
-            "joint_angles": dict(
-                zip(model.dof_names, params["joint_angles"][0].tolist(), strict=True)
-            ),
-            "root_translation": params["root_translation"][0],
-            "root_rotation": params["root_rotation"][0],
-        }
-        if config.output.overlays:
-            px = project_points(out.vertices, camera)[0].cpu().numpy()
-            model_mask = render_silhouette(px, model.faces.cpu().numpy(), cam.image_size)
-            image = (images[posture.index - 1].permute(1, 2, 0).numpy() * 255).round()
-            person = seg.masks[posture.index - 1, 0].numpy()
-            overlay = _overlay(
-                image.astype(np.uint8),
-                person,
-                model_mask,
-                f"{subject.name} pose{posture.index} {posture.name}",
+            x, results = minpack_stage(fit, x, stage, options)
+            per = [
+                (int(r.status[0]), float(r.cost[0]), int(r.nfev[0]), r.message[0]) for r in results
+            ]
+        else:
+            callback = None
+            if tb is not None:
+                from torchfit.tb_logging import TensorBoardCallback
+
+                callback = TensorBoardCallback(tb.writer, tag, names, log_every=1)
+            x, res = fit.solve_stage(x, stage, options, callback=callback)
+            per = [
+                (int(res.status[i]), float(res.cost[i]), int(res.n_iter[i]), res.message[i])
+                for i in range(len(prepared))
+            ]
+        for i, (code, cost, iters, message) in enumerate(per):
+            stages_out[i].append(
+                {
+                    "stage": stage.name,
+                    "status": _status_name(code),
+                    "message": message,
+                    "cost": cost,
+                    "iterations": iters,
+                }
             )
-            cv2.imwrite(str(folder / f"overlay_pose{posture.index}.png"), overlay)
+        if any(_status_name(p[0]) in _FAILED for p in per):
+            log.warning("%s: %s", tag, [p[3] for p in per])
+    seconds = (time.perf_counter() - start) / len(prepared)
 
-    measurements = {k: float(v[0]) for k, v in measure_model(model, scales).items()}
-    export_urdf(model, scales[0], folder)
-    export_mesh(
-        model(**{**model.zeros(1), "scales": scales}).vertices[0],
-        model.faces,
-        folder / f"model.{config.output.mesh_format}",
-    )
-    status = "template"
-    message = "template measurements at the nominal postures (no fit)"
-    write_json(
-        folder / "params.json",
-        {
-            "template": model.template.name,
-            "status": status,
-            "message": message,
-            "scales": dict(zip(model.template.segments, scales[0].tolist(), strict=True)),
-            "poses": poses,
-        },
-    )
-    write_json(folder / "measurements.json", {**measurements, "status": status})
-    return SubjectResult(
-        subject.name, status, message, measurements, seconds=time.perf_counter() - start
-    )
+    # outputs
+    group = x[:, : fit.num_scale_params].reshape(-1, model.num_groups, 3)
+    scales = model.expand_scales(group)
+    measures = measure_model(model, scales)
+    rows = torch.arange(len(prepared))
+    selections = fit.select(x)
+    final = fit.residual(x, selections)
+    results = []
+    for i, prep in enumerate(prepared):
+        folder = run_dir / prep.subject.name
+        folder.mkdir(parents=True, exist_ok=True)
+        stage_status = [s["status"] for s in stages_out[i]]
+        failed = any(s in _FAILED for s in stage_status) or not math.isfinite(
+            stages_out[i][-1]["cost"]
+        )
+        status = "failed" if failed else "ok"
+        message = stages_out[i][-1]["message"]
+        measurements = {k: float(v[i]) for k, v in measures.items()}
+        poses = {}
+        for k, j in enumerate(fit.poses):
+            s_, angles, rot, trans = fit.pose_state(x[i : i + 1], j, rows[i : i + 1])
+            poses[f"pose{j}"] = {
+                "name": POSTURES[j - 1].name,
+                "joint_angles": dict(zip(model.dof_names, angles[0].tolist(), strict=True)),
+                "free_joints": [model.dof_names[d] for d in fit.pose_joints[j]],
+                "root_translation_xy": trans[0, :2],
+                "root_rotation": rot[0],
+                "offsets": dict(
+                    zip(
+                        ("tx", "ty", "yaw", "roll", "pitch"),
+                        x[i, fit.pose_slices[j]][-5:].tolist(),
+                        strict=True,
+                    )
+                ),
+            }
+            if config.output.overlays:
+                import cv2
+
+                image = (prep.images[k].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+                overlay = _overlay(
+                    image,
+                    prep.masks[k].numpy(),
+                    selections[j].masks[i],
+                    f"{prep.subject.name} pose{j} {POSTURES[j - 1].name}",
+                )
+                cv2.imwrite(str(folder / f"overlay_pose{j}.png"), overlay[:, :, ::-1])
+                if tb is not None:
+                    tb.add_image(f"overlay/{prep.subject.name}/pose{j}", overlay)
+        if tb is not None:
+            offset = 0
+            for k, j in enumerate(fit.poses):
+                n = person.valid[k].shape[1]
+                e_p = final[i, offset : offset + n]
+                tb.add_scalar(
+                    f"residual/{prep.subject.name}/pose{j}_e_P_rms_px", float(e_p.norm()), 0
+                )
+                tb.add_scalar(
+                    f"residual/{prep.subject.name}/pose{j}_e_M_px", float(final[i, offset + n]), 0
+                )
+                offset += n + 1
+        export_urdf(model, scales[i], folder)
+        neutral = model(
+            scales[i : i + 1], **{k: v for k, v in model.zeros(1).items() if k != "scales"}
+        )
+        export_mesh(neutral.vertices[0], model.faces, folder / f"model.{config.output.mesh_format}")
+        write_json(
+            folder / "params.json",
+            {
+                "template": model.template.name,
+                "status": status,
+                "message": message,
+                "method": "minpack_rendered" if solver_cfg.jacobian == "numeric" else "autograd_lm",
+                "group_scales": {
+                    g: group[i, gi] for gi, g in enumerate(model.template.scale_groups)
+                },
+                "segment_scales": dict(
+                    zip(model.template.segments, scales[i].tolist(), strict=True)
+                ),
+                "poses": poses,
+                "stages": stages_out[i],
+            },
+        )
+        write_json(folder / "measurements.json", {**measurements, "status": status})
+        iterations = sum(s["iterations"] for s in stages_out[i])
+        results.append(
+            SubjectResult(
+                prep.subject.name,
+                status,
+                message,
+                measurements,
+                final_cost=stages_out[i][-1]["cost"],
+                iterations=iterations,
+                seconds=seconds + prep.seconds,
+            )
+        )
+    return results
 
 
 def _resumed(subject: Subject, folder: Path) -> SubjectResult | None:
@@ -176,30 +318,32 @@ def _resumed(subject: Subject, folder: Path) -> SubjectResult | None:
 
 def write_summary(results: list[SubjectResult], path: Path) -> None:
     """Write summary.csv, one row per subject."""
-    rows = [r.row() for r in results]
     with path.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(SubjectResult("", "").row()))
         writer.writeheader()
-        writer.writerows(rows)
+        writer.writerows(r.row() for r in results)
 
 
 def run(
     config: Config,
     run_dir: Path,
-    progress: Callable[[list[Subject]], object] | None = None,
+    progress: Callable[[int], object] | None = None,
 ) -> list[SubjectResult]:
     """Run a whole dataset: the resolved config, per-subject outputs and summary.csv.
 
     Args:
         config: the resolved configuration (``data.root`` must be set).
         run_dir: the run folder.
-        progress: optional wrapper over the subject list (e.g. ``tqdm``).
+        progress: optional factory ``total -> bar`` with ``update(n)`` and ``close()``
+            (e.g. ``lambda n: tqdm(total=n)``).
 
     Returns:
-        One :class:`SubjectResult` per subject, failed ones included.
+        One :class:`SubjectResult` per subject, failed ones included, in dataset order.
     """
     if not config.data.root:
         raise DataError("data.root is not set: pass --data DIR or set data.root in the config")
+    if config.run.num_threads:
+        torch.set_num_threads(config.run.num_threads)
     run_dir.mkdir(parents=True, exist_ok=True)
     save_config(config, run_dir / "config.yaml")
     subjects = load_dataset(config.data.root, config.data.subjects)
@@ -207,18 +351,56 @@ def run(
         raise DataError(f"no subject folders found in {config.data.root}")
     dtype = torch.float64 if config.run.dtype == "float64" else torch.float32
     model = BodyModel(config.model.template, device=config.run.device, dtype=dtype)
-    results = []
-    iterator = progress(subjects) if progress else subjects
-    for subject in iterator:
-        folder = run_dir / subject.name
-        if config.run.resume and (done := _resumed(subject, folder)):
-            results.append(done)
-            continue
-        try:
-            results.append(process_subject(subject, model, config, folder))
-        except (TorchfitError, OSError) as exc:
-            log.error("%s: %s", subject.name, exc)
-            results.append(SubjectResult(subject.name, "failed", str(exc)))
-        write_summary(results, run_dir / "summary.csv")
-    write_summary(results, run_dir / "summary.csv")
-    return results
+    bar = progress(len(subjects)) if progress else None
+    done: dict[str, SubjectResult] = {}
+    todo: list[Subject] = []
+    for subject in subjects:
+        previous = _resumed(subject, run_dir / subject.name) if config.run.resume else None
+        if previous is not None:
+            done[subject.name] = previous
+            if bar:
+                bar.update(1)
+        else:
+            todo.append(subject)
+    tb = None
+    if config.output.tensorboard and todo:
+        from torchfit.tb_logging import TensorBoardCallback
+
+        tb = TensorBoardCallback(run_dir / "tb", "fit")
+
+    def finish(result: SubjectResult) -> None:
+        done[result.name] = result
+        if bar:
+            bar.update(1)
+        write_summary([done[s.name] for s in subjects if s.name in done], run_dir / "summary.csv")
+
+    try:
+        for start in range(0, len(todo), config.fit.batch_size):
+            prepared = []
+            for subject in todo[start : start + config.fit.batch_size]:
+                t0 = time.perf_counter()
+                try:
+                    images, masks = segment_subject(subject, config)
+                    prepared.append(_Prepared(subject, images, masks, time.perf_counter() - t0))
+                except (TorchfitError, OSError) as exc:
+                    log.error("%s: %s", subject.name, exc)
+                    finish(SubjectResult(subject.name, "failed", str(exc)))
+            if not prepared:
+                continue
+            try:
+                results = fit_batch(prepared, model, config, run_dir, tb)
+            except (TorchfitError, RuntimeError) as exc:
+                log.error("batch %s failed: %s", [p.subject.name for p in prepared], exc)
+                results = [
+                    SubjectResult(p.subject.name, "failed", f"fit failed: {exc}") for p in prepared
+                ]
+            for result in results:
+                finish(result)
+    finally:
+        if tb is not None:
+            tb.close()
+        if bar:
+            bar.close()
+    ordered = [done[s.name] for s in subjects]
+    write_summary(ordered, run_dir / "summary.csv")
+    return ordered

@@ -91,6 +91,14 @@ class TensorBoardCallback:
                 self._done.add(b)
         return False
 
+    def add_image(self, tag: str, image, step: int = 0) -> None:
+        """Log an (H, W, 3) uint8 RGB image (e.g. a fit overlay)."""
+        self.writer.add_image(tag, image, step, dataformats="HWC")
+
+    def add_scalar(self, tag: str, value: float, step: int = 0) -> None:
+        """Log one scalar (e.g. a final per-pose residual)."""
+        self.writer.add_scalar(tag, value, step)
+
     def flush(self) -> None:
         self.writer.flush()
 

@@ -103,6 +103,7 @@ class BodyModel:
         self._padded[t.vertex_segment, slot] = t.vertices.to(dtype)
         self._flat_index = (t.vertex_segment * vmax + slot).to(device)
         self._padded = self._padded.to(device)
+        self._vertices = t.vertices.to(device=device, dtype=dtype)
         self.faces = t.faces.to(device)
         # tree levels for the position pass (parents first)
         depth = [0] * t.num_segments
@@ -163,6 +164,7 @@ class BodyModel:
         joint_angles: torch.Tensor,
         root_translation: torch.Tensor,
         root_rotation: torch.Tensor,
+        vertex_index: torch.Tensor | None = None,
     ) -> BodyOutput:
         """Pose the scaled template.
 
@@ -172,6 +174,8 @@ class BodyModel:
             root_translation: (B, 3) world position of the root segment origin, metres.
             root_rotation: (B, 3) axis-angle of the root frame in the world, radians, or
                 (B, 3, 3) rotation matrices.
+            vertex_index: optional (K,) template vertex indices; only those are posed and
+                ``vertices`` is (B, K, 3) (cheaper when few vertices are needed).
 
         Returns:
             :class:`BodyOutput` with (B, V, 3) vertices, (B, S, 3) origins and
@@ -199,6 +203,11 @@ class BodyModel:
                 origins[s] = origins[int(par[k])] + step[:, k]
         origins_t = torch.stack(origins, dim=1)  # (B, S, 3)
 
+        if vertex_index is not None:
+            seg = self.template.vertex_segment.to(vertex_index.device)[vertex_index]
+            local = scales[:, seg] * self._vertices[vertex_index]  # (B, K, 3)
+            vertices = (rot[:, seg] @ local[..., None])[..., 0] + origins_t[:, seg]
+            return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
         local = scales[:, :, None, :] * self._padded  # (B, S, Vmax, 3)
         posed = torch.einsum("bsij,bsvj->bsvi", rot, local) + origins_t[:, :, None, :]
         vertices = posed.reshape(posed.shape[0], -1, 3)[:, self._flat_index]

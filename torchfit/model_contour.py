@@ -1,0 +1,261 @@
+"""The model's outer contour as a differentiable function of the projected mesh.
+
+Which mesh points form the outer contour of the model silhouette is a discrete choice, made
+outside autograd each time the parameters change (:func:`select_contour`):
+
+1. every mesh edge carries ``K`` sample points at fixed fractions ``t_k = (k + 0.5) / K``;
+2. candidate edges are the projected silhouette edges: between a front- and a back-facing
+   triangle, or on the border of a segment mesh;
+3. the projected mesh is rasterised (exact polygon fill) and the outer contour of the
+   silhouette traced; a candidate sample lies *on the model contour* when it is within
+   ``tolerance`` pixels of a contour pixel;
+4. for every person contour pixel the nearest selected sample is recorded.
+
+Given that choice (:func:`contour_endpoints` turns it into mesh edges and fractions), the
+contour points and :func:`point_to_edge_distance` are plain torch functions of the projected
+vertices, so the residuals built on them differentiate with autograd. Pixels: ``(u, v)``,
+pixel (0, 0) the centre of the top-left pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from torchfit.errors import ShapeError, check_shape
+from torchfit.render import render_silhouette
+
+__all__ = [
+    "EdgeSampler",
+    "ContourSelection",
+    "ContourEndpoints",
+    "select_contour",
+    "contour_endpoints",
+    "point_to_edge_distance",
+]
+
+
+class EdgeSampler:
+    """Sample points on the unique edges of a triangle mesh.
+
+    Args:
+        faces: (F, 3) triangle vertex indices.
+        samples_per_edge: K samples per edge at ``t_k = (k + 0.5) / K``.
+    """
+
+    def __init__(self, faces: torch.Tensor, samples_per_edge: int = 4) -> None:
+        if samples_per_edge < 1:
+            raise ShapeError(f"samples_per_edge: expected >= 1, got {samples_per_edge}")
+        f = faces.cpu().long()
+        edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).sort(dim=1).values
+        self.edges, inverse = torch.unique(edges, dim=0, return_inverse=True)  # (E, 2)
+        # the (up to) two faces on each edge, -1 where an edge borders one face only
+        face_of = torch.arange(f.shape[0]).repeat(3)
+        order = torch.argsort(inverse, stable=True)
+        first = torch.full((self.edges.shape[0],), -1, dtype=torch.long)
+        second = torch.full((self.edges.shape[0],), -1, dtype=torch.long)
+        inv_sorted, faces_sorted = inverse[order], face_of[order]
+        starts = torch.ones_like(inv_sorted, dtype=torch.bool)
+        starts[1:] = inv_sorted[1:] != inv_sorted[:-1]
+        first[inv_sorted[starts]] = faces_sorted[starts]
+        follow = torch.zeros_like(starts)
+        follow[1:] = starts[:-1] & ~starts[1:]
+        second[inv_sorted[follow]] = faces_sorted[follow]
+        self.edge_faces = torch.stack([first, second], 1)  # (E, 2)
+        self.k = samples_per_edge
+        self.t = (torch.arange(samples_per_edge, dtype=torch.float64) + 0.5) / samples_per_edge
+        self.faces = f
+
+    @property
+    def num_samples(self) -> int:
+        return self.edges.shape[0] * self.k
+
+    def endpoints(self, sample_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Vertex indices (a, b) and fraction t of samples: each (...,)."""
+        e = sample_index // self.k
+        return self.edges[e, 0], self.edges[e, 1]
+
+    def fraction(self, sample_index: torch.Tensor) -> torch.Tensor:
+        return self.t[sample_index % self.k]
+
+    def silhouette_edges(self, pixels: np.ndarray) -> np.ndarray:
+        """(V, 2) projected vertices of one mesh -> (E,) bool: edges between a front- and a
+        back-facing triangle, or on the border of the mesh (candidates for the contour)."""
+        tri = pixels[self.faces.numpy()]
+        a, b = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        facing = (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]) > 0
+        ef = self.edge_faces.numpy()
+        border = ef[:, 1] < 0
+        return border | (facing[ef[:, 0]] != facing[np.maximum(ef[:, 1], 0)])
+
+    def all_points(self, pixels: torch.Tensor) -> torch.Tensor:
+        """(B, V, 2) projected vertices -> (B, E*K, 2) sample points."""
+        a = pixels[:, self.edges[:, 0]]  # (B, E, 2)
+        b = pixels[:, self.edges[:, 1]]
+        t = self.t.to(pixels)[None, None, :, None]
+        pts = a[:, :, None] * (1 - t) + b[:, :, None] * t  # (B, E, K, 2)
+        return pts.reshape(pixels.shape[0], -1, 2)
+
+
+@dataclass
+class ContourSelection:
+    """The discrete contour choice for a batch of projected meshes (one image each).
+
+    Attributes:
+        samples: (B, N) sample indices on the model contour, padded with 0.
+        sample_valid: (B, N) bool, False on padding.
+        nearest: (B, C) for each person contour pixel, the position (into ``samples``' second
+            dimension) of its nearest selected sample; 0 where invalid.
+        masks: list of B (H, W) uint8 rendered model silhouettes (for overlays and tests).
+    """
+
+    samples: torch.Tensor
+    sample_valid: torch.Tensor
+    nearest: torch.Tensor
+    masks: list[np.ndarray]
+
+    def repeat_interleave(self, repeats: int) -> ContourSelection:
+        """The same choice for every row of a batch folded ``repeats`` times (row b*r + i)."""
+        rep = lambda x: x.repeat_interleave(repeats, dim=0)  # noqa: E731
+        masks = [m for m in self.masks for _ in range(repeats)]
+        return ContourSelection(rep(self.samples), rep(self.sample_valid), rep(self.nearest), masks)
+
+
+def _outer_boundary(mask: np.ndarray) -> np.ndarray:
+    """(N, 2) (u, v) pixels of the outer contours of a binary mask."""
+    import cv2
+
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return np.zeros((0, 2))
+    return np.concatenate([c[:, 0, :] for c in contours]).astype(np.float64)
+
+
+@torch.no_grad()
+def select_contour(
+    sampler: EdgeSampler,
+    pixels: torch.Tensor,
+    person_contours: torch.Tensor,
+    person_valid: torch.Tensor,
+    image_size: tuple[int, int],
+    tolerance: float = 1.0,
+) -> ContourSelection:
+    """Choose the mesh edge samples that form the model's outer contour.
+
+    Args:
+        sampler: edge samples of the model mesh.
+        pixels: (B, V, 2) projected vertices.
+        person_contours: (B, C, 2) person contour pixels, padded.
+        person_valid: (B, C) bool.
+        image_size: ``(width, height)``.
+        tolerance: max distance in pixels from a contour pixel of the rendered silhouette.
+
+    Returns:
+        :class:`ContourSelection`. An image whose model has no contour sample in view gets no
+        valid sample (the residual turns that into a large constant, see
+        :func:`torchfit.residuals.contour_residuals`).
+    """
+    import cv2
+    from scipy.spatial import cKDTree
+
+    check_shape("pixels", pixels, ("B", "V", 2))
+    b = pixels.shape[0]
+    w, h = image_size
+    px = pixels.detach().cpu().double()
+    pts = sampler.all_points(px).numpy()  # (B, N, 2)
+    faces = sampler.faces.numpy()
+    chosen, masks = [], []
+    nearest = torch.zeros(person_contours.shape[:2], dtype=torch.long)
+    for i in range(b):
+        mask = render_silhouette(px[i].numpy(), faces, (w, h))
+        masks.append(mask)
+        boundary = np.ones((h, w), np.uint8)
+        bpix = _outer_boundary(mask).astype(np.int64)
+        if len(bpix):
+            boundary[bpix[:, 1], bpix[:, 0]] = 0
+        dist = cv2.distanceTransform(boundary, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        p = pts[i]
+        ui = np.clip(np.rint(p[:, 0]), 0, w - 1).astype(np.int64)
+        vi = np.clip(np.rint(p[:, 1]), 0, h - 1).astype(np.int64)
+        inside = (p[:, 0] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < h - 0.5)
+        candidate = np.repeat(sampler.silhouette_edges(px[i].numpy()), sampler.k)
+        near = dist[vi, ui] <= tolerance
+        on = np.flatnonzero(candidate & inside & near & (len(bpix) > 0))
+        chosen.append(on)
+        valid = person_valid[i].cpu().numpy()
+        if len(on) and valid.any():
+            _, idx = cKDTree(p[on]).query(person_contours[i].cpu().numpy()[valid])
+            nearest[i, torch.from_numpy(np.flatnonzero(valid))] = torch.from_numpy(idx)
+    n = max(1, max(len(c) for c in chosen))
+    samples = torch.zeros(b, n, dtype=torch.long)
+    sample_valid = torch.zeros(b, n, dtype=torch.bool)
+    for i, c in enumerate(chosen):
+        samples[i, : len(c)] = torch.from_numpy(c)
+        sample_valid[i, : len(c)] = True
+    dev = pixels.device
+    return ContourSelection(samples.to(dev), sample_valid.to(dev), nearest.to(dev), masks)
+
+
+@dataclass
+class ContourEndpoints:
+    """Mesh vertices and edge fractions behind a :class:`ContourSelection`.
+
+    Attributes:
+        model_a, model_b: (B, N) vertex indices of the edge of each model contour sample.
+        model_t: (B, N) the sample's fraction along its edge.
+        person_a, person_b, person_t: (B, C) the same for the sample nearest to each person
+            contour pixel.
+    """
+
+    model_a: torch.Tensor
+    model_b: torch.Tensor
+    model_t: torch.Tensor
+    person_a: torch.Tensor
+    person_b: torch.Tensor
+    person_t: torch.Tensor
+
+    def vertices(self) -> torch.Tensor:
+        """Sorted unique vertex indices used anywhere in the batch."""
+        return torch.unique(torch.cat([self.model_a.flatten(), self.model_b.flatten()]))
+
+
+def contour_endpoints(sampler: EdgeSampler, selection: ContourSelection) -> ContourEndpoints:
+    """Resolve a selection into edge endpoints and fractions (all long/float tensors)."""
+    dev = selection.samples.device
+    samples = selection.samples.cpu()
+    nearest = torch.gather(samples, 1, selection.nearest.cpu())
+    ma, mb = sampler.endpoints(samples)
+    pa, pb = sampler.endpoints(nearest)
+    return ContourEndpoints(
+        ma.to(dev),
+        mb.to(dev),
+        sampler.fraction(samples).to(dev),
+        pa.to(dev),
+        pb.to(dev),
+        sampler.fraction(nearest).to(dev),
+    )
+
+
+def point_to_edge_distance(
+    x: torch.Tensor, a: torch.Tensor, b: torch.Tensor, t0: torch.Tensor, half: float
+) -> torch.Tensor:
+    """Distance from points to the piece ``t in [t0 - half, t0 + half]`` of edges a→b.
+
+    The model contour near a chosen sample is the piece of its mesh edge the sample stands
+    for; the distance is to that piece, so it is exact for straight contour edges.
+
+    Args:
+        x: (..., 2) points; a, b: (..., 2) projected edge endpoints; t0: (...) fractions.
+        half: half the spacing of the samples along an edge (``0.5 / K``).
+
+    Returns:
+        (...) pixels, smooth at zero distance (``sqrt(d^2 + eps^2) - eps``).
+    """
+    d = b - a
+    t = ((x - a) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-12)
+    t = torch.minimum(torch.maximum(t, t0 - half), t0 + half)
+    diff = x - (a + t[..., None] * d)
+    eps = 1e-6
+    return torch.sqrt((diff * diff).sum(-1) + eps * eps) - eps
