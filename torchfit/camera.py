@@ -263,11 +263,13 @@ def distort_normalized(xy: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
     check_shape("dist", dist, (None, 5))
     k1, k2, p1, p2, k3 = (dist[:, i : i + 1] for i in range(5))
     x, y = xy[..., 0], xy[..., 1]
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xy2 = 2 * x * y
-    xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2
+    # written without Python number operands, which are slow on forward-mode dual tensors
+    xx, yy, xy_ = x * x, y * y, x * y
+    r2 = xx + yy
+    poly = r2 * (k1 + r2 * (k2 + r2 * k3))  # radial factor minus one
+    xy2 = xy_ + xy_
+    xd = x + x * poly + p1 * xy2 + p2 * (r2 + xx + xx)
+    yd = y + y * poly + p1 * (r2 + yy + yy) + p2 * xy2
     return torch.stack([xd, yd], dim=-1)
 
 

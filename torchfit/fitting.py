@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import torch
 import torch.autograd.forward_ad as fwad
 
+from torchfit._dual import is_dual, lift
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import POSTURES, facing_yaw, nominal_joint_angles
 from torchfit.camera import Camera, camera_centre, project_points
@@ -266,14 +267,15 @@ class SilhouetteFit:
         scales = m.expand_scales(full[:, : self.num_scale_params].reshape(-1, m.num_groups, 3))
         sl = self.pose_slices[j]
         n_joint = len(self.pose_joints[j])
-        angles = self.nominal[j].expand(full.shape[0], -1)
+        dual = is_dual(full)
         # scatter the free joints without in-place writes (dual tensors flow through)
         onehot = torch.zeros(n_joint, m.num_dofs, **self.kw)
         onehot[torch.arange(n_joint), torch.tensor(self.pose_joints[j])] = 1.0
+        fixed = lift((self.nominal[j] * (1 - onehot.sum(0))).expand(full.shape[0], -1), dual)
         free = full[:, sl.start : sl.start + n_joint]
-        angles = angles * (1 - onehot.sum(0)) + free @ onehot
+        angles = fixed + free @ lift(onehot, dual)
         tx, ty, yaw, roll, pitch = full[:, sl.start + n_joint : sl.stop].unbind(-1)
-        rot = _rotation(self.base_yaw[j][rows] + yaw, roll, pitch)
+        rot = _rotation(lift(self.base_yaw[j][rows], dual) + yaw, roll, pitch)
         trans = torch.stack([tx, ty, torch.zeros_like(tx)], -1)
         return scales, angles, rot, trans
 

@@ -19,6 +19,7 @@ import warnings
 import numpy as np
 import torch
 
+from torchfit._dual import is_dual, lift
 from torchfit.errors import ModelError, check_shape
 
 __all__ = ["SkeletonChain"]
@@ -74,7 +75,17 @@ class SkeletonChain:
 
     def _transforms(self, joint_angles: torch.Tensor) -> torch.Tensor:
         # (num_frames, B, 4, 4) -> segment frames (B, S, 4, 4)
-        all_t = self.chain.forward_kinematics_tensor(joint_angles, analytical_grad=False)
+        if is_dual(joint_angles):
+            # the chain's constants as zero-tangent duals: mixed dual/plain arithmetic is slow
+            saved = self.chain.axes, self.chain._static_offsets
+            self.chain.axes = lift(saved[0], True)
+            self.chain._static_offsets = lift(saved[1], True)
+            try:
+                all_t = self.chain.forward_kinematics_tensor(joint_angles, analytical_grad=False)
+            finally:
+                self.chain.axes, self.chain._static_offsets = saved
+        else:
+            all_t = self.chain.forward_kinematics_tensor(joint_angles, analytical_grad=False)
         return all_t[self.frame_indices].transpose(0, 1)
 
     def _segment_offsets(self, source: str, dtype: torch.dtype) -> torch.Tensor:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchfit._dual import is_dual, lift
 from torchfit.body.kinematics import SkeletonChain
 from torchfit.body.template import Template, load_template
 from torchfit.errors import ModelError, check_shape
@@ -185,6 +186,8 @@ class BodyModel:
         check_shape("scales", scales, (b, self.num_segments, 3))
         check_shape("joint_angles", joint_angles, (b, self.num_dofs))
         check_shape("root_translation", root_translation, (b, 3))
+        dual = any(is_dual(t) for t in (scales, joint_angles, root_translation, root_rotation))
+        offsets = lift(self.offsets, dual)
         if root_rotation.dim() == 3:
             check_shape("root_rotation", root_rotation, (b, 3, 3))
             rot_root = root_rotation
@@ -198,17 +201,17 @@ class BodyModel:
         origins[0] = root_translation
         for level in self._levels:
             par = self._parents[level]
-            step = (rot[:, par] @ (scales[:, par] * self.offsets[level])[..., None])[..., 0]
+            step = (rot[:, par] @ (scales[:, par] * offsets[level])[..., None])[..., 0]
             for k, s in enumerate(level.tolist()):
                 origins[s] = origins[int(par[k])] + step[:, k]
         origins_t = torch.stack(origins, dim=1)  # (B, S, 3)
 
         if vertex_index is not None:
             seg = self.template.vertex_segment.to(vertex_index.device)[vertex_index]
-            local = scales[:, seg] * self._vertices[vertex_index]  # (B, K, 3)
+            local = scales[:, seg] * lift(self._vertices[vertex_index], dual)  # (B, K, 3)
             vertices = (rot[:, seg] @ local[..., None])[..., 0] + origins_t[:, seg]
             return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
-        local = scales[:, :, None, :] * self._padded  # (B, S, Vmax, 3)
+        local = scales[:, :, None, :] * lift(self._padded, dual)  # (B, S, Vmax, 3)
         posed = torch.einsum("bsij,bsvj->bsvi", rot, local) + origins_t[:, :, None, :]
         vertices = posed.reshape(posed.shape[0], -1, 3)[:, self._flat_index]
         return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
