@@ -1,0 +1,146 @@
+"""Speed of the six-posture fit: autograd LM against the paper's numeric MINPACK baseline, and
+batch throughput.
+
+    python benchmarks/bench_fit.py --data DIR [--config configs/benchmark.yaml]
+        [--baseline-subjects 1] [--batch-sizes 1,4,16] [--threads N]
+
+Part 1 (same subject, same residual, same stopping rule, one run): one stage over every
+scale and the root poses of the six postures, from the template start, solved (a) by the
+batched LM with the structured autograd Jacobian and (b) by MINPACK lmdif with forward
+differences on the rendered-contour residual (torchfit.baseline). Both final costs are
+evaluated with the rendered residual, so they compare one to one.
+
+Part 2: wall time of the whole configured fit (segmentation included) for B subjects in one
+batch, for each B; subjects are taken from DIR in order (repeated if DIR has fewer).
+
+Prints a markdown table, the machine and the versions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from torchfit.baseline import minpack_stage, rendered_residual  # noqa: E402
+from torchfit.body.model import BodyModel  # noqa: E402
+from torchfit.camera import stack_cameras  # noqa: E402
+from torchfit.config import StageConfig, load_config  # noqa: E402
+from torchfit.fitting import SilhouetteFit, person_data_from_masks  # noqa: E402
+from torchfit.io.dataset import load_dataset  # noqa: E402
+from torchfit.pipeline import run, segment_subject  # noqa: E402
+from torchfit.solver import LMOptions  # noqa: E402
+
+
+def machine() -> str:
+    return (
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"torch {torch.__version__} ({torch.get_num_threads()} threads), "
+        f"python {platform.python_version()}"
+    )
+
+
+def part1(config, subjects, max_iter: int) -> None:
+    model = BodyModel(config.model.template)
+    masks = torch.stack([segment_subject(s, config)[1] for s in subjects])
+    person = person_data_from_masks(
+        masks,
+        stack_cameras([s.camera for s in subjects]),
+        config.segmentation.distance,
+        config.fit.contour_stride,
+    )
+    fit = SilhouetteFit(model, person, config.fit, config.model)
+    stage = StageConfig(name="scales_and_root", scales=["all"], joints=False, root=True)
+    options = LMOptions(
+        max_iter=max_iter, ftol=config.solver.ftol, xtol=config.solver.xtol, gtol=config.solver.gtol
+    )
+    x0 = fit.initial_params()
+    start_cost = 0.5 * (rendered_residual(fit, x0) ** 2).sum(1)
+    t = time.perf_counter()
+    x_lm, res = fit.solve_stage(x0, stage, options)
+    t_lm = time.perf_counter() - t
+    t = time.perf_counter()
+    x_mp, res_mp = minpack_stage(fit, x0, stage, options)
+    t_mp = time.perf_counter() - t
+    cost_lm = 0.5 * (rendered_residual(fit, x_lm) ** 2).sum(1)
+    cost_mp = 0.5 * (rendered_residual(fit, x_mp) ** 2).sum(1)
+    n_free = fit.stage_indices(stage).numel()
+    print(
+        f"\n## Autograd LM vs numeric MINPACK baseline ({len(subjects)} subject(s), "
+        f"{n_free} free parameters, max_iter {max_iter})\n"
+    )
+    print("| subject | start cost | LM cost | MINPACK cost | LM s | MINPACK s | speed-up |")
+    print("|---|---|---|---|---|---|---|")
+    per_lm = t_lm / len(subjects)
+    for i, s in enumerate(subjects):
+        # MINPACK runs subject by subject; its time per subject is its share of the loop
+        per_mp = t_mp / len(subjects)
+        print(
+            f"| {s.name} | {float(start_cost[i]):.1f} | {float(cost_lm[i]):.1f} | "
+            f"{float(cost_mp[i]):.1f} | {per_lm:.1f} | {per_mp:.1f} | {per_mp / per_lm:.1f}x |"
+        )
+    print(
+        f"\nLM iterations {res.n_iter.tolist()}, MINPACK evaluations "
+        f"{[int(r.nfev[0]) for r in res_mp]}; costs are the rendered-contour residual at "
+        "each final point."
+    )
+
+
+def part2(config, root: Path, names: list[str], batch_sizes: list[int]) -> None:
+    print("\n## Whole fit, batch throughput (segmentation + all stages + outputs)\n")
+    print("| B | wall s | s per subject | subjects per minute | statuses |")
+    print("|---|---|---|---|---|")
+    for b in batch_sizes:
+        with tempfile.TemporaryDirectory() as tmp:
+            data = Path(tmp) / "data"
+            data.mkdir()
+            for i in range(b):
+                src = root / names[i % len(names)]
+                os.symlink(src, data / f"{i:03d}_{src.name}")
+            cfg = copy.deepcopy(config)
+            cfg.data.root, cfg.data.subjects = str(data), None
+            cfg.run.out, cfg.run.resume = str(Path(tmp) / "run"), False
+            cfg.fit.batch_size = b
+            cfg.output.tensorboard = False
+            t = time.perf_counter()
+            results = run(cfg, Path(cfg.run.out))
+            wall = time.perf_counter() - t
+            statuses = sorted({r.status for r in results})
+            print(f"| {b} | {wall:.0f} | {wall / b:.1f} | {60 * b / wall:.2f} | {statuses} |")
+            shutil.rmtree(Path(tmp) / "run", ignore_errors=True)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--config", type=Path, default=Path("configs/benchmark.yaml"))
+    parser.add_argument("--baseline-subjects", type=int, default=1)
+    parser.add_argument("--baseline-max-iter", type=int, default=20)
+    parser.add_argument("--batch-sizes", default="1,4,16")
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--skip-baseline", action="store_true")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    config = load_config(args.config)
+    subjects = [s for s in load_dataset(args.data) if s.ok]
+    print(f"# bench_fit on {args.data} ({machine()})")
+    if not args.skip_baseline:
+        part1(config, subjects[: args.baseline_subjects], args.baseline_max_iter)
+    sizes = [int(b) for b in args.batch_sizes.split(",") if b]
+    part2(config, args.data, [s.name for s in subjects], sizes)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
