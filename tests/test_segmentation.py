@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from torchfit.config import SegmentationConfig
-from torchfit.errors import SegmentationError, ShapeError
+from torchfit.errors import ConfigError, SegmentationError, ShapeError
 from torchfit.io import load_frames, read_mask
 from torchfit.segmentation import (
     cdnet_counts,
@@ -29,6 +29,7 @@ from torchfit.segmentation import (
     mahalanobis_distance,
     precision_recall_f,
     segment,
+    shadow_mask,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -149,6 +150,85 @@ def test_clean_mask_opening_largest_region_closing_and_holes() -> None:
     assert torch.equal(raw, m)  # every step can be switched off
     with pytest.raises(ShapeError, match="masks: expected shape"):
         clean_mask(torch.zeros(40, 40, dtype=torch.bool))
+
+
+def test_clean_mask_fills_only_small_holes_with_max_hole_area() -> None:
+    m = torch.zeros(1, 1, 60, 60, dtype=torch.bool)
+    m[0, 0, 5:55, 5:55] = True
+    m[0, 0, 10:13, 10:13] = False  # 9 px hole (survives a 1x1 closing)
+    m[0, 0, 20:50, 25:35] = False  # 300 px hole: "the gap between the legs"
+    filled = clean_mask(m, 1, 1, fill_holes=True)[0, 0]
+    assert bool(filled[5:55, 5:55].all())  # default: every hole filled
+    # the silhouette with its holes covers 2500 px: 1 % is 25 px, 20 % is 500 px
+    for frac, small, big in ((0.01, True, False), (0.2, True, True), (0.0, False, False)):
+        out = clean_mask(m, 1, 1, fill_holes=True, max_hole_area=frac)[0, 0]
+        assert bool(out[10:13, 10:13].all()) == small, frac
+        assert bool(out[20:50, 25:35].all()) == big, frac
+        assert bool(out[20:50, 25:35].any()) == big, frac  # a hole is filled whole or not
+    with pytest.raises(ValueError, match="max_hole_area must be in"):
+        clean_mask(m, 1, 1, max_hole_area=2.0)
+
+
+def _legs_scene(shadow: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A textured brown floor, two "legs" on it and, optionally, a cast shadow (the floor
+    scaled by 0.7 in each channel, same hue) that joins the feet. Returns background frames
+    (5, 3, H, W), the image (1, 3, H, W) and the true person mask (H, W)."""
+    gen = torch.Generator().manual_seed(3)
+    h, w = 80, 80
+    yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    tone = 1 + 0.08 * torch.sin(xx * 0.7) * torch.cos(yy * 0.3)
+    floor = torch.tensor([0.55, 0.40, 0.25]).view(3, 1, 1) * tone
+    frames = (floor + 0.006 * torch.randn(5, 3, h, w, generator=gen)).clamp(0, 1)
+    person = torch.zeros(h, w, dtype=torch.bool)
+    person[5:60, 20:60] = True  # trunk and hips
+    person[60:75, 20:32] = True  # left leg
+    person[60:75, 48:60] = True  # right leg
+    person[30:60, 32:48] = False  # the gap between the legs, open at the bottom
+    image = floor.clone()
+    if shadow:
+        image[:, 62:78, 10:75] *= 0.7  # across and below the feet
+    image[:, person] = torch.tensor([0.2, 0.3, 0.7]).view(3, 1)  # blue clothing
+    image = (image + 0.006 * torch.randn(3, h, w, generator=gen)).clamp(0, 1)
+    return quantise(frames), quantise(image)[None], person
+
+
+def test_shadow_test_keeps_the_leg_gap_and_drops_the_shadow() -> None:
+    frames, image, person = _legs_scene(shadow=True)
+    shadow = torch.zeros_like(person)
+    shadow[62:78, 10:75] = True
+    shadow &= ~person
+    base = SegmentationConfig(gamma=0.3, threshold=4.0)
+    model = fit_background(frames, base)
+    plain = segment(image, model, base).masks[0, 0]
+    # without the shadow test the shadow is person and joins the feet: the gap is filled
+    assert float(plain[shadow].float().mean()) > 0.5
+    assert bool(plain[35:60, 36:44].all())
+    cfg = SegmentationConfig(gamma=0.3, threshold=4.0, shadow_test=True, max_hole_area=0.02)
+    got = segment(image, fit_background(frames, cfg), cfg).masks[0, 0]
+    assert float(got[shadow].float().mean()) < 0.02  # the shadow is background
+    assert not bool(got[35:60, 36:44].any())  # the leg gap survives
+    assert float((got == person).float().mean()) > 0.98
+    # the shadow test alone, against a darker object of another colour
+    s = shadow_mask(model, image)[0, 0]
+    assert float(s[shadow].float().mean()) > 0.95 and not bool(s[person].any())
+
+
+def test_shadow_test_leaves_unshadowed_scene_alone_and_checks_input() -> None:
+    frames, image, person = _legs_scene(shadow=False)
+    cfg = SegmentationConfig(gamma=0.3, shadow_test=True)
+    model = fit_background(frames, cfg)
+    got = segment(image, model, cfg).masks[0, 0]
+    assert float((got == person).float().mean()) > 0.98
+    assert model.rgb_mean is not None and model.rgb_mean.shape == (1, 3, 80, 80)
+    median = fit_background(frames, SegmentationConfig(background="temporal_median"))
+    assert torch.allclose(median.rgb_mean, model.rgb_mean, atol=0.02)
+    with pytest.raises(ValueError, match="ratio must satisfy"):
+        shadow_mask(model, image, (0.9, 0.5))
+    with pytest.raises(SegmentationError, match="expected size"):
+        shadow_mask(model, image[..., :40])
+    bad = SegmentationConfig(shadow_test=True, shadow_ratio=[0.5])
+    with pytest.raises(ConfigError, match="shadow_ratio"):
+        segment(image, model, bad)
 
 
 @pytest.mark.parametrize("k", [3, 5, 7])

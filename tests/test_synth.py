@@ -137,6 +137,11 @@ def test_generated_subject_is_valid_plausible_and_deterministic(tmp_path):
     make_subject(tmp_path / "a" / "s0", seed=7, index=0, cfg=cfg)
     make_subject(tmp_path / "b" / "s0", seed=7, index=0, cfg=cfg)
     assert _digest(tmp_path / "a" / "s0") == _digest(tmp_path / "b" / "s0")
+    # evaluation masks: present, and --masks-only rewrites exactly the same files
+    masks = {k: v for k, v in _digest(tmp_path / "a" / "s0").items() if "truth_masks" in k}
+    assert len(masks) == 16  # 6 postures + 2 stereo views, person and shadow each
+    make_subject(tmp_path / "c" / "s0", seed=7, index=0, cfg=cfg, masks_only=True)
+    assert _digest(tmp_path / "c" / "s0") == masks
 
     (subject,) = load_dataset(tmp_path / "a")
     assert subject.ok, subject.problems
@@ -231,3 +236,52 @@ def test_render_body_occludes_room_and_casts_a_floor_shadow():
     ratio = after / before
     assert (ratio < 0.8).all()
     np.testing.assert_allclose(ratio, ratio.mean(), rtol=1e-6)  # same hue, only darker
+
+
+def test_render_layers_give_the_true_person_and_shadow_masks(tmp_path):
+    import cv2
+    import torch
+
+    from torchfit.camera import project_points
+    from torchfit.synth.generate import _write_mask
+    from torchfit.synth.scene import (
+        Light,
+        body_coverage,
+        render,
+        room_depth,
+        sample_camera,
+        sample_room,
+    )
+
+    rng = np.random.default_rng(1)
+    az = 0.7
+    centre = np.array([3.5 * math.cos(az), 3.5 * math.sin(az), 1.3])
+    room = sample_room(rng, az, 3.5)
+    room.boxes = []
+    camera = sample_camera(rng, centre, np.array([0.0, 0.0, 1.0]), (180, 144), 2.8)
+    light_dir = np.array([math.cos(az + 1.2), math.sin(az + 1.2), 1.0])
+    light = Light(light_dir / np.linalg.norm(light_dir), ambient=0.45, diffuse=0.6)
+    v, f = _box_mesh((-0.2, -0.2, 0.0), (0.2, 0.2, 1.6))
+    albedo = np.tile([0.1, 0.2, 0.8], (len(v), 1))
+    colour, person, shadow = render(room, camera, light, (v, f, albedo), layers=True)
+    np.testing.assert_array_equal(colour, render(room, camera, light, (v, f, albedo)))
+    empty = render(room, camera, light, None)
+    # the person mask is exactly where the body was painted over the room
+    changed = np.abs(colour - empty).max(-1) > 0
+    assert person.any() and (changed[person]).all()
+    np.testing.assert_array_equal(
+        person, body_coverage(camera, v, f, room_depth(room, camera, light))
+    )
+    # the shadow mask: outside the person, darker floor, the same hue
+    assert shadow.sum() > 20 and not (shadow & person).any()
+    ratio = colour[shadow] / empty[shadow]
+    assert (ratio < 0.9).all()
+    np.testing.assert_allclose(ratio, np.repeat(ratio[:, :1], 3, 1), rtol=1e-6)
+    pt = np.array([0.0, 0.0, 1.2]) - 1.2 / light.direction[2] * light.direction
+    su, sv = project_points(torch.tensor(pt)[None, None], camera)[0, 0].round().long()
+    assert shadow[sv, su]
+    # written as a 0/255 single-channel PNG
+    _write_mask(tmp_path / "m" / "pose1.png", person, 3)
+    back = cv2.imread(str(tmp_path / "m" / "pose1.png"), cv2.IMREAD_UNCHANGED)
+    assert back.dtype == np.uint8 and back.ndim == 2 and set(np.unique(back)) == {0, 255}
+    np.testing.assert_array_equal(back > 0, person)

@@ -1,6 +1,10 @@
 """Generate synthetic subjects (anny bodies in the six postures) in the dataset layout.
 
     python tools/make_subjects.py --out DIR --n N --seed S [--config FILE] [--set key=value]
+    python tools/make_subjects.py --out DIR --n N --seed S --masks-only   # add truth masks
+
+``--masks-only`` (re)writes only the evaluation masks (``truth_masks/``) of subjects generated
+earlier with the same seed and config, without writing their images again.
 
 Needs the ``synth`` extra (``pip install -e ".[synth]"``). The same seed gives the same
 subjects; subject ``i`` does not depend on ``--n``.
@@ -31,6 +35,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--contact-sheet", default=None, metavar="PNG", help="also write a contact sheet here"
     )
+    parser.add_argument(
+        "--masks-only",
+        action="store_true",
+        help="write only the truth masks of existing subjects (same seed and config)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     cfg = load_config(args.config, args.set, schema=SynthConfig)
@@ -43,10 +52,10 @@ def main(argv: list[str] | None = None) -> None:
     for i in tqdm(range(args.first, args.first + args.n), desc="subjects"):
         start = time.perf_counter()
         folders.append(out / f"subject_{i:03d}")
-        summary = make_subject(folders[-1], args.seed, i, cfg, model)
+        summary = make_subject(folders[-1], args.seed, i, cfg, model, args.masks_only)
         summary["seconds"] = round(time.perf_counter() - start, 1)
         logging.info(json.dumps(summary))
-    if args.contact_sheet:
+    if args.contact_sheet and not args.masks_only:
         from torchfit.synth.sheet import contact_sheet
 
         contact_sheet(folders, args.contact_sheet)

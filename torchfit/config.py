@@ -85,6 +85,19 @@ class SegmentationConfig:
     close_kernel: int = 7
     largest_region: bool = True  # keep only the largest region (one person); false keeps all
     fill_holes: bool = True
+    # largest hole filled, as a fraction of the silhouette's area (holes included); None fills
+    # every hole. A small value keeps the gap between the legs when a shadow closes it below
+    max_hole_area: float | None = None
+    # explicit cast-shadow test (the first paper's suggested improvement, its reference [4]):
+    # a pixel darker than the background by an RGB ratio in shadow_ratio, with a colour
+    # direction within shadow_chroma (radians) of the background's, is background
+    shadow_test: bool = False
+    shadow_ratio: list[float] = field(default_factory=lambda: [0.5, 0.95])
+    shadow_chroma: float = 0.05
+    # the shadow test applies only to the lowest shadow_band fraction of the foreground's
+    # height (cast shadows lie on the floor around the feet; grey clothing on a grey wall
+    # passes the colour test too); 1 applies it everywhere
+    shadow_band: float = 1.0
     distance: Literal["chamfer", "euclidean"] = "chamfer"
 
 
@@ -131,6 +144,9 @@ class FitConfig:
     poses: list[int] = field(default_factory=lambda: [1, 2, 3, 4, 5, 6])
     initial_guess: Literal["template", "parts"] = "template"
     batch_size: int = 4  # subjects solved together in one batched LM run
+    # a fitted subject whose model contour is on average further than this from the
+    # person's contour in some pose (e_M, pixels) gets status "poor_fit" (check its overlays)
+    max_contour_rms_px: float = 15.0
     # per-pose free joints, e.g. {pose3: [l_knee_flexion, ...]}; default: design.md section 4
     free_joints: dict[str, list[str]] | None = None
     translation_max_m: float = 0.15  # floor translation interval, each axis

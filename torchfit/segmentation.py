@@ -23,6 +23,21 @@ This is the segmentation of the first paper (section 4). Conventions:
   saturation is not scale invariant); only the ``gamma``-weighted lightness moves. So with a
   small ``gamma`` shadows on darker-than-mid-grey surfaces stay background, which the RGB
   baseline cannot do.
+- **Explicit shadow test** (``shadow_test``, off by default). The paper notes that shadow
+  handling "could be improved by a similarity measure like in [4]" (its reference [4]); this
+  is such a measure, in the spirit of brightness/chromaticity-distortion shadow detectors. With
+  ``B`` the background's mean RGB and ``I`` the pixel's RGB (both 0–1, as stored, i.e. gamma
+  encoded; a uniform darkening stays uniform under the power law), the brightness ratio is
+  ``alpha = <I, B> / |B|^2`` and the colour change is the angle between ``I`` and ``B``. A
+  pixel the Mahalanobis test calls foreground is background again when
+  ``shadow_ratio[0] <= alpha <= shadow_ratio[1]`` and the angle is at most ``shadow_chroma``
+  radians: darker, same colour direction. Colour alone cannot tell a shadow from grey
+  clothing in front of a lighter grey wall (both are "darker, same direction"), so
+  ``shadow_band`` limits the test to the lowest fraction of the foreground's vertical extent,
+  where a standing person's floor shadow lies; hence also off by default.
+- **Holes.** ``fill_holes`` fills background regions enclosed by the silhouette; with
+  ``max_hole_area`` only those up to that fraction of the silhouette's area, so that a large
+  enclosed gap (between the legs, closed below by a shadow or the feet) stays open.
 - **Backgrounds without empty frames.** ``method="temporal_median"`` (never a silent default)
   estimates the background from frames that may contain the person: per pixel it takes the
   median feature over the frames, keeps the half of the frames closest to it, and uses their
@@ -47,7 +62,7 @@ import numpy as np
 import torch
 
 from torchfit.config import SegmentationConfig
-from torchfit.errors import SegmentationError, ShapeError
+from torchfit.errors import ConfigError, SegmentationError, ShapeError
 
 __all__ = [
     "BackgroundModel",
@@ -55,6 +70,7 @@ __all__ = [
     "color_features",
     "fit_background",
     "mahalanobis_distance",
+    "shadow_mask",
     "clean_mask",
     "segment",
     "cdnet_counts",
@@ -113,6 +129,8 @@ class BackgroundModel:
         covariance: ``(B, 3, 3, H, W)`` covariance including ``regularization * I``.
         color_space: ``"hsl"`` or ``"rgb"`` (baseline).
         gamma: lightness weight used for the features.
+        rgb_mean: ``(B, 3, H, W)`` mean RGB in ``[0, 1]`` of the background (for the shadow
+            test), or None.
         precision: ``(B, 6, H, W)`` the inverse covariance, packed as
             ``(p00, p11, p22, p01, p02, p12)``; derived, not an argument.
     """
@@ -121,6 +139,7 @@ class BackgroundModel:
     covariance: torch.Tensor
     color_space: Literal["hsl", "rgb"] = "hsl"
     gamma: float = 0.3
+    rgb_mean: torch.Tensor | None = field(default=None, repr=False)
     precision: torch.Tensor = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -136,8 +155,9 @@ class BackgroundModel:
 
     def to(self, device: torch.device | str) -> BackgroundModel:
         """The same model on another device."""
+        rgb = None if self.rgb_mean is None else self.rgb_mean.to(device)
         return BackgroundModel(
-            self.mean.to(device), self.covariance.to(device), self.color_space, self.gamma
+            self.mean.to(device), self.covariance.to(device), self.color_space, self.gamma, rgb
         )
 
 
@@ -177,6 +197,7 @@ def fit_background(
         raise ValueError(f"config.regularization must be > 0, got {config.regularization}")
     feats = color_features(frames, config.color_space, config.gamma)  # (B, N, 3, H, W)
     if config.background == "frames":
+        rgb_mean = frames.mean(1)
         mean = feats.mean(1)
         dev = feats - mean.unsqueeze(1)
         cov = torch.einsum("bnihw,bnjhw->bijhw", dev, dev) / (n - 1)
@@ -190,13 +211,15 @@ def fit_background(
         dev = kept - mean.unsqueeze(1)
         cov = torch.einsum("bnihw,bnjhw->bijhw", dev, dev) / max(keep - 1, 1)
         cov = cov * _HALF_SAMPLE_CONSISTENCY
+        rgb = frames.gather(1, idx.unsqueeze(2).expand(-1, -1, 3, -1, -1))
+        rgb_mean = rgb.mean(1)
     else:
         raise ValueError(
             f"config.background must be 'frames' or 'temporal_median', got {config.background!r}"
         )
     eye = torch.eye(3, dtype=cov.dtype, device=cov.device).view(1, 3, 3, 1, 1)
     return BackgroundModel(
-        mean, cov + config.regularization * eye, config.color_space, config.gamma
+        mean, cov + config.regularization * eye, config.color_space, config.gamma, rgb_mean
     )
 
 
@@ -234,22 +257,87 @@ def mahalanobis_distance(model: BackgroundModel, images: torch.Tensor) -> torch.
     return sq.clamp_min(0.0).sqrt().unsqueeze(1)
 
 
-def _largest_region_and_fill(mask: np.ndarray, largest: bool, fill_holes: bool) -> np.ndarray:
-    """Keep the largest 8-connected region of a ``(H, W)`` uint8 mask; optionally fill holes."""
-    out = mask
-    if largest:
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-        if n <= 1:
-            return np.zeros_like(mask)
-        biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-        out = (labels == biggest).astype(np.uint8)
-    if fill_holes:
-        # Flood the background from outside the image; what it does not reach is a hole.
-        padded = np.pad(out, 1)
-        flood = padded.copy()
-        cv2.floodFill(flood, None, (0, 0), 1)
-        out = out | (1 - flood[1:-1, 1:-1])
-    return out
+def shadow_mask(
+    model: BackgroundModel,
+    images: torch.Tensor,
+    ratio: tuple[float, float] = (0.5, 0.95),
+    max_angle: float = 0.05,
+) -> torch.Tensor:
+    """Pixels that look like a cast shadow on the background (see the module docstring).
+
+    Args:
+        model: with ``rgb_mean`` (from :func:`fit_background`), batch 1 or ``B``.
+        images: ``(B, 3, H, W)`` RGB in ``[0, 1]``, the size of the model.
+        ratio: ``(low, high)`` bounds of the brightness ratio ``<I, B> / |B|^2``.
+        max_angle: largest angle (radians) between the pixel's and the background's RGB.
+
+    Returns:
+        ``(B, 1, H, W)`` bool, True where the pixel is a darker copy of the background.
+
+    Raises:
+        ShapeError: for a wrongly shaped ``images``.
+        SegmentationError: if the model has no ``rgb_mean`` or the sizes differ.
+    """
+    _check_images("images", images, 1)
+    if model.rgb_mean is None:
+        raise SegmentationError("model: the shadow test needs rgb_mean (use fit_background)")
+    if images.shape[-2:] != model.rgb_mean.shape[-2:]:
+        raise SegmentationError(
+            f"images: expected size {tuple(model.rgb_mean.shape[-2:])} (HxW) of the background "
+            f"model, got {tuple(images.shape[-2:])}"
+        )
+    low, high = ratio
+    if not 0.0 < low <= high:
+        raise ValueError(f"ratio must satisfy 0 < low <= high, got {ratio}")
+    bg = model.rgb_mean.to(images.dtype)
+    dot = (images * bg).sum(1, keepdim=True)
+    bb = bg.square().sum(1, keepdim=True).clamp_min(1e-6)
+    ii = images.square().sum(1, keepdim=True).clamp_min(1e-6)
+    alpha = dot / bb
+    cos = (dot / (bb * ii).sqrt()).clamp(-1.0, 1.0)
+    return (alpha >= low) & (alpha <= high) & (cos >= math.cos(max_angle))
+
+
+def _lower_band(masks: torch.Tensor, fraction: float, open_kernel: int) -> torch.Tensor:
+    """``(B, 1, H, W)`` bool: the rows in the lowest ``fraction`` of each mask's vertical
+    extent (measured after an opening by ``open_kernel``, so that speckles do not count)."""
+    opened = _binary_morphology(masks, open_kernel, "opening") if open_kernel > 1 else masks
+    rows = opened.any(3, keepdim=True)  # (B, 1, H, 1)
+    h = masks.shape[2]
+    idx = torch.arange(h, device=masks.device).view(1, 1, h, 1)
+    top = torch.where(rows, idx, h).amin(2, keepdim=True)
+    bottom = torch.where(rows, idx, -1).amax(2, keepdim=True)
+    start = bottom - fraction * (bottom - top).clamp_min(0)
+    return (idx >= start).expand_as(masks)
+
+
+def _largest_region(mask: np.ndarray) -> np.ndarray:
+    """The largest 8-connected region of a ``(H, W)`` uint8 mask (all zero if none)."""
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    if n <= 1:
+        return np.zeros_like(mask)
+    biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return (labels == biggest).astype(np.uint8)
+
+
+def _fill_holes(mask: np.ndarray, max_fraction: float | None) -> np.ndarray:
+    """Fill the holes of a ``(H, W)`` uint8 mask, only those up to ``max_fraction`` of the
+    filled silhouette's area unless ``max_fraction`` is None.
+
+    A hole is a 4-connected background region the flood from outside the image does not reach
+    (the complement connectivity of 8-connected regions).
+    """
+    padded = np.pad(mask, 1)
+    flood = padded.copy()
+    cv2.floodFill(flood, None, (0, 0), 1)
+    holes = (1 - flood[1:-1, 1:-1]).astype(np.uint8)
+    if max_fraction is None:
+        return mask | holes
+    limit = max_fraction * (int(mask.sum()) + int(holes.sum()))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=4)
+    small = np.zeros(n, dtype=np.uint8)
+    small[1:] = stats[1:, cv2.CC_STAT_AREA] <= limit
+    return mask | small[labels]
 
 
 def _shift_reduce(x: torch.Tensor, k: int, dim: int, dilate: bool) -> torch.Tensor:
@@ -294,6 +382,7 @@ def clean_mask(
     close_kernel: int = 7,
     fill_holes: bool = True,
     largest_region: bool = True,
+    max_hole_area: float | None = None,
 ) -> torch.Tensor:
     """Opening, largest 8-connected region, closing, optional hole filling (paper, section 4).
 
@@ -302,6 +391,8 @@ def clean_mask(
         open_kernel: side of the square opening element in pixels (odd); ``<= 1`` skips it.
         close_kernel: side of the square closing element (odd); ``<= 1`` skips the closing.
         fill_holes: fill background regions enclosed by the person.
+        max_hole_area: with ``fill_holes``, fill only holes up to this fraction (in
+            ``[0, 1]``) of the silhouette's area, holes included; None fills every hole.
         largest_region: keep only the largest region (the paper's one-person assumption);
             ``False`` keeps every region that survives the opening (for scenes with several
             people, e.g. for scoring against multi-person ground truth).
@@ -318,18 +409,23 @@ def clean_mask(
     for name, k in (("open_kernel", open_kernel), ("close_kernel", close_kernel)):
         if k > 1 and k % 2 == 0:
             raise ValueError(f"{name} must be odd (or <= 1 to skip the step), got {k}")
+    if max_hole_area is not None and not 0.0 <= max_hole_area <= 1.0:
+        raise ValueError(f"max_hole_area must be in [0, 1] or None, got {max_hole_area}")
     out = masks
     if open_kernel > 1:
         out = _binary_morphology(out, open_kernel, "opening")
     if largest_region:
         host = out[:, 0].to(torch.uint8).cpu().numpy()
-        kept = np.stack([_largest_region_and_fill(m, True, False) for m in host])
+        kept = np.stack([_largest_region(m) for m in host])
         out = torch.from_numpy(kept).to(masks.device).bool().unsqueeze(1)
     if close_kernel > 1:
         out = _binary_morphology(out, close_kernel, "closing")
     if fill_holes:
         host = out[:, 0].to(torch.uint8).cpu().numpy()
-        filled = np.stack([_largest_region_and_fill(m, largest_region, True) for m in host])
+        # the closing can join a stray blob to the person: keep the largest region again
+        if largest_region:
+            host = [_largest_region(m) for m in host]
+        filled = np.stack([_fill_holes(m, max_hole_area) for m in host])
         out = torch.from_numpy(filled).to(masks.device).bool().unsqueeze(1)
     return out
 
@@ -357,8 +453,9 @@ def segment(
     Args:
         images: ``(B, 3, H, W)`` RGB in ``[0, 1]``.
         model: from :func:`fit_background`, batch 1 or ``B``.
-        config: ``threshold``, ``open_kernel``, ``close_kernel``, ``fill_holes`` and
-            ``largest_region`` are used.
+        config: ``threshold``, ``open_kernel``, ``close_kernel``, ``fill_holes``,
+            ``max_hole_area``, ``largest_region`` and, with ``shadow_test``, ``shadow_ratio``,
+            ``shadow_chroma`` and ``shadow_band`` are used.
 
     Returns:
         :class:`SegmentationResult`; an image without a person has ``found = False`` and an
@@ -366,12 +463,29 @@ def segment(
     """
     config = config or SegmentationConfig()
     distance = mahalanobis_distance(model, images)
+    raw = distance > config.threshold
+    if config.shadow_test:
+        if len(config.shadow_ratio) != 2:
+            raise ConfigError(
+                f"segmentation.shadow_ratio: expected [low, high], got {config.shadow_ratio}"
+            )
+        shadow = shadow_mask(
+            model, images, (config.shadow_ratio[0], config.shadow_ratio[1]), config.shadow_chroma
+        )
+        if not 0.0 < config.shadow_band <= 1.0:
+            raise ConfigError(
+                f"segmentation.shadow_band: expected a value in (0, 1], got {config.shadow_band}"
+            )
+        if config.shadow_band < 1.0:
+            shadow = shadow & _lower_band(raw, config.shadow_band, config.open_kernel)
+        raw = raw & ~shadow
     masks = clean_mask(
-        distance > config.threshold,
+        raw,
         config.open_kernel,
         config.close_kernel,
         config.fill_holes,
         config.largest_region,
+        config.max_hole_area,
     )
     return SegmentationResult(masks, distance, masks.flatten(1).any(1))
 

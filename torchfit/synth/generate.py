@@ -8,6 +8,17 @@ offset up to ±5 cm, yaw ±5°, lean ±2°), background frames, ``camera.yaml``,
 and ``joints_world`` per capture) and the stereo pair of design.md section 7. Subject ``i`` of
 seed ``S`` is drawn from ``numpy.random.default_rng([S, i])``: the same seed gives the same
 subjects, whatever ``n``.
+
+**Evaluation-only masks.** Like ``truth.json``, the folder ``truth_masks/`` is ground truth
+for evaluation, never an input of the fit (the dataset loader does not read it):
+``truth_masks/pose1.png`` … ``pose6.png`` hold the true person silhouette of each posture
+image (0/255, the renderer's own coverage: pixel centres covered by a visible body triangle,
+before the optics blur), ``truth_masks/pose1_shadow.png`` … the cast floor shadow outside
+the person (where the blurred shadow reaches at least half strength); ``stereo/truth_masks/``
+holds ``left.png``, ``right.png``, ``left_shadow.png`` and ``right_shadow.png``.
+``make_subject(..., masks_only=True)`` rewrites only these masks for an existing subject: it
+draws the same random numbers in the same order without rendering the empty room, writing
+the images or building the noise images' pixels, so the masks equal a full run's.
 """
 
 from __future__ import annotations
@@ -253,6 +264,20 @@ def _write_png(path: Path, rgb: np.ndarray, compression: int) -> None:
         raise OSError(f"cannot write {path}")
 
 
+def _write_mask(path: Path, mask: np.ndarray, compression: int) -> None:
+    """Write a (H, W) bool mask as a 0/255 single-channel PNG."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = np.where(mask, 255, 0).astype(np.uint8)
+    if not cv2.imwrite(str(path), data, [cv2.IMWRITE_PNG_COMPRESSION, compression]):
+        raise OSError(f"cannot write {path}")
+
+
+def _skip_finish(rng: np.random.Generator, shape: tuple[int, ...], noise_sigma: float) -> None:
+    """Draw exactly the random numbers :func:`finish` draws for an image of ``shape``
+    (its sensor noise), without forming the image: keeps ``masks_only`` runs in step."""
+    rng.normal(0.0, noise_sigma, shape)
+
+
 def _write_stereo(
     stereo: Path,
     body: AnnyBody,
@@ -263,9 +288,11 @@ def _write_stereo(
     azimuth: float,
     rng: np.random.Generator,
     cfg: SynthConfig,
+    masks_only: bool = False,
 ) -> dict[str, list[float]]:
     """The stereo pair of design.md section 7 (posture 5, two parallel cameras ``baseline``
-    apart, within 10 degrees of the main camera's azimuth); returns its joints_world."""
+    apart, within 10 degrees of the main camera's azimuth) and its truth masks; returns its
+    joints_world. ``masks_only`` writes only ``stereo/truth_masks``."""
     st_az = azimuth + math.radians(rng.uniform(-10, 10))
     st_dist = rng.uniform(*cfg.camera_distance_m)
     baseline = rng.uniform(*cfg.stereo_baseline_m)
@@ -284,22 +311,34 @@ def _write_stereo(
         )
     posed, _ = _capture(body, STEREO_POSTURE, math.atan2(rig[1], rig[0]), rng, cfg)
     gain = 1 + rng.uniform(-cfg.illumination_change, cfg.illumination_change, 1) + np.zeros(3)
+    shape = (size[1], size[0], 3)
     for side, cam in cams.items():
-        empty = render(room, cam, light, None)
+        empty = None if masks_only else render(room, cam, light, None)
         for i in range(cfg.background_frames):
-            img = finish(empty, rng, _background_gain(rng), cfg.noise_sigma)
+            bg_gain = _background_gain(rng)
+            if masks_only:
+                _skip_finish(rng, shape, cfg.noise_sigma)
+                continue
             _write_png(
                 stereo / "background" / side / f"bg{i + 1:02d}.png",
-                img,
+                finish(empty, rng, bg_gain, cfg.noise_sigma),
                 cfg.png_compression,
             )
-        colour = render(room, cam, light, (posed.vertices, faces, albedo))
+        colour, person, cast = render(
+            room, cam, light, (posed.vertices, faces, albedo), layers=True
+        )
+        _write_mask(stereo / "truth_masks" / f"{side}.png", person, cfg.png_compression)
+        _write_mask(stereo / "truth_masks" / f"{side}_shadow.png", cast, cfg.png_compression)
+        if masks_only:
+            _skip_finish(rng, shape, cfg.noise_sigma)
+            continue
         _write_png(
             stereo / f"{side}.png",
             finish(colour, rng, gain, cfg.noise_sigma),
             cfg.png_compression,
         )
-    save_stereo_cameras(cams["left"], cams["right"], stereo / "cameras.yaml")
+    if not masks_only:
+        save_stereo_cameras(cams["left"], cams["right"], stereo / "cameras.yaml")
     return _joints_json(posed)
 
 
@@ -309,6 +348,7 @@ def make_subject(
     index: int,
     cfg: SynthConfig | None = None,
     model: Any = None,
+    masks_only: bool = False,
 ) -> dict:
     """Generate and write one subject folder.
 
@@ -317,6 +357,9 @@ def make_subject(
         seed, index: the subject is drawn from ``default_rng([seed, index])``.
         cfg: options (defaults when None).
         model: an anny model (default: :func:`torchfit.synth.body.load_anny`).
+        masks_only: write only ``truth_masks/`` (and ``stereo/truth_masks/``), the same files
+            a full run writes, for a subject generated before the masks existed; images,
+            cameras, ``truth.json`` and ``synth.json`` are left as they are.
 
     Returns:
         A summary: phenotype, sex, camera azimuth and the truth measurements.
@@ -353,30 +396,43 @@ def make_subject(
 
     truth = _truth(body)
     joints_world = {}
-    empty = render(room, camera, light, None)
+    shape = (size[1], size[0], 3)
+    empty = None if masks_only else render(room, camera, light, None)
     for i in range(cfg.background_frames):
-        img = finish(empty, rng, _background_gain(rng), cfg.noise_sigma)
+        bg_gain = _background_gain(rng)
+        if masks_only:
+            _skip_finish(rng, shape, cfg.noise_sigma)
+            continue
+        img = finish(empty, rng, bg_gain, cfg.noise_sigma)
         _write_png(folder / "background" / f"bg{i + 1:02d}.png", img, cfg.png_compression)
     for posture in POSTURES:
         posed, _ = _capture(body, posture, facing, rng, cfg)
         joints_world[f"pose{posture.index}"] = _joints_json(posed)
-        colour = render(room, camera, light, (posed.vertices, faces, albedo))
+        colour, person, cast = render(
+            room, camera, light, (posed.vertices, faces, albedo), layers=True
+        )
+        name = f"pose{posture.index}"
+        _write_mask(folder / "truth_masks" / f"{name}.png", person, cfg.png_compression)
+        _write_mask(folder / "truth_masks" / f"{name}_shadow.png", cast, cfg.png_compression)
         gain = (
             1
             + rng.uniform(-cfg.illumination_change, cfg.illumination_change)
             + rng.normal(0, 0.005, 3)
         )
+        if masks_only:
+            _skip_finish(rng, shape, cfg.noise_sigma)
+            continue
         img = finish(colour, rng, gain, cfg.noise_sigma)
-        _write_png(folder / "poses" / f"pose{posture.index}.png", img, cfg.png_compression)
-    save_camera(camera, folder / "camera.yaml")
+        _write_png(folder / "poses" / f"{name}.png", img, cfg.png_compression)
+    if not masks_only:
+        save_camera(camera, folder / "camera.yaml")
 
     if cfg.stereo:
         joints_world["stereo"] = _write_stereo(
-            folder / "stereo", body, faces, albedo, room, light, azimuth, rng, cfg
+            folder / "stereo", body, faces, albedo, room, light, azimuth, rng, cfg, masks_only
         )
 
     truth["joints_world"] = joints_world
-    (folder / "truth.json").write_text(json.dumps(truth, indent=1))
     summary = {
         "subject": folder.name,
         "seed": seed,
@@ -386,7 +442,9 @@ def make_subject(
         "camera_azimuth_deg": round(math.degrees(azimuth) % 360, 2),
         **{k: v for k, v in truth.items() if k != "joints_world"},
     }
-    (folder / "synth.json").write_text(json.dumps(summary, indent=1))
+    if not masks_only:
+        (folder / "truth.json").write_text(json.dumps(truth, indent=1))
+        (folder / "synth.json").write_text(json.dumps(summary, indent=1))
     log.debug("wrote %s: %s", folder, summary)
     return summary
 

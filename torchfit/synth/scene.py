@@ -21,7 +21,17 @@ import torch
 from torchfit.camera import Camera, look_at, project_points
 from torchfit.synth.raster import interpolate, lambert, rasterize, vertex_normals
 
-__all__ = ["Box", "Room", "Light", "sample_room", "sample_camera", "render", "finish"]
+__all__ = [
+    "Box",
+    "Room",
+    "Light",
+    "sample_room",
+    "sample_camera",
+    "render",
+    "room_depth",
+    "body_coverage",
+    "finish",
+]
 
 
 @dataclass
@@ -330,13 +340,38 @@ def _project(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray
     return px[0].numpy(), depth[0].numpy()
 
 
+def body_coverage(
+    camera: Camera, vertices: np.ndarray, faces: np.ndarray, room_depth: np.ndarray
+) -> np.ndarray:
+    """Where the body is visible in front of the room: the true person silhouette.
+
+    Args:
+        camera: the view.
+        vertices: (V, 3) world, metres.
+        faces: (F, 3) vertex indices.
+        room_depth: (H, W) camera-frame depth of the room surfaces, metres.
+
+    Returns:
+        (H, W) bool, True where a body triangle covers the pixel centre nearer than the room.
+    """
+    px, dep = _project(vertices, camera)
+    raster = rasterize(px, dep, faces, camera.image_size)
+    return raster.mask & (raster.depth < room_depth)
+
+
+def room_depth(room: Room, camera: Camera, light: Light) -> np.ndarray:
+    """(H, W) camera-frame depth of the empty room, metres (for :func:`body_coverage`)."""
+    return _background(room, camera, light)[1]
+
+
 def render(
     room: Room,
     camera: Camera,
     light: Light,
     body: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     shadow_strength: float = 1.0,
-) -> np.ndarray:
+    layers: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Render one view: the room and, optionally, a body with its floor shadow.
 
     Args:
@@ -344,12 +379,19 @@ def render(
         body: ``(vertices (V, 3) world, faces (F, 3), albedo (V, 3))`` or None for an empty
             room.
         shadow_strength: 1 for a full cast shadow (ambient light only inside it).
+        layers: also return the true person and cast-shadow masks (evaluation data).
 
     Returns:
-        (H, W, 3) float RGB in [0, 1] before noise.
+        (H, W, 3) float RGB in [0, 1] before noise; with ``layers``, the tuple
+        ``(colour, person, shadow)``: ``person`` (H, W) bool where the body is visible (the
+        same coverage that is painted), ``shadow`` (H, W) bool where the blurred cast shadow
+        darkens the floor by at least half its full strength and no body is visible.
     """
     colour, depth, floor_points = _background(room, camera, light)
+    h, w = depth.shape
     if body is None:
+        if layers:
+            return colour, np.zeros((h, w), bool), np.zeros((h, w), bool)
         return colour
     vertices, faces, albedo = body
     size = camera.image_size
@@ -372,6 +414,9 @@ def render(
     alb = interpolate(raster, faces, albedo)
     shaded = lambert(alb, normals, L, light.ambient, light.diffuse)
     colour[visible] = shaded[visible]
+    if layers:
+        cast = (shadow * is_floor >= 0.5) & ~visible & (shadow_strength > 0)
+        return colour, visible, cast
     return colour
 
 
