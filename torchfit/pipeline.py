@@ -54,7 +54,7 @@ class SubjectResult:
     """Outcome of one subject (a row of summary.csv)."""
 
     name: str
-    status: str  # "ok", "failed"
+    status: str  # "ok", "poor_fit" (fitted, but far from the person's contour), "failed"
     message: str = ""
     measurements: dict[str, float] = field(default_factory=dict)
     final_cost: float | None = None
@@ -222,8 +222,26 @@ def fit_batch(
         failed = any(s in _FAILED for s in stage_status) or not math.isfinite(
             stages_out[i][-1]["cost"]
         )
-        status = "failed" if failed else "ok"
+        quality, offset = {}, 0
+        for k, j in enumerate(fit.poses):
+            n = person.valid[k].shape[1]
+            quality[f"pose{j}"] = {
+                "e_P_rms_px": float(final[i, offset : offset + n].norm()),
+                "e_M_px": float(final[i, offset + n]),
+            }
+            offset += n + 1
+        worst = max(quality, key=lambda key: quality[key]["e_M_px"])
         message = stages_out[i][-1]["message"]
+        if failed:
+            status = "failed"
+        elif quality[worst]["e_M_px"] > config.fit.max_contour_rms_px:
+            status = "poor_fit"
+            message = (
+                f"model contour {quality[worst]['e_M_px']:.1f} px (RMS) from the "
+                f"person's in {worst}: check the segmentation in the overlays"
+            )
+        else:
+            status = "ok"
         measurements = {k: float(v[i]) for k, v in measures.items()}
         poses = {}
         for k, j in enumerate(fit.poses):
@@ -256,17 +274,9 @@ def fit_batch(
                 if tb is not None:
                     tb.add_image(f"overlay/{prep.subject.name}/pose{j}", overlay)
         if tb is not None:
-            offset = 0
-            for k, j in enumerate(fit.poses):
-                n = person.valid[k].shape[1]
-                e_p = final[i, offset : offset + n]
-                tb.add_scalar(
-                    f"residual/{prep.subject.name}/pose{j}_e_P_rms_px", float(e_p.norm()), 0
-                )
-                tb.add_scalar(
-                    f"residual/{prep.subject.name}/pose{j}_e_M_px", float(final[i, offset + n]), 0
-                )
-                offset += n + 1
+            for pose, values in quality.items():
+                for key, value in values.items():
+                    tb.add_scalar(f"residual/{prep.subject.name}/{pose}_{key}", value, 0)
         export_urdf(model, scales[i], folder)
         neutral = model(
             scales[i : i + 1], **{k: v for k, v in model.zeros(1).items() if k != "scales"}
