@@ -29,6 +29,7 @@ import numpy as np
 
 from torchfit.errors import DataError
 from torchfit.io.dataset import validate_truth
+from torchfit.measurements import MEASUREMENT_KEYS
 
 __all__ = [
     "REPORT_KEYS",
@@ -57,15 +58,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Measurements of the report, in order (the first paper's Table 1 and the segment lengths).
-REPORT_KEYS: tuple[str, ...] = (
-    "height_m",
-    "arm_span_m",
-    "lower_leg_m",
-    "thigh_m",
-    "upper_arm_m",
-    "forearm_m",
-    "shoulder_width_m",
-)
+REPORT_KEYS: tuple[str, ...] = MEASUREMENT_KEYS[: MEASUREMENT_KEYS.index("shoulder_width_m") + 1]
 #: Human-readable names of :data:`REPORT_KEYS`.
 LABELS: dict[str, str] = {
     "height_m": "height",
