@@ -46,19 +46,8 @@ JOINT_NAMES: tuple[str, ...] = (
     "r_ankle",
 )
 
-_NEEDED = (
-    "neck",
-    "l_shoulder",
-    "r_shoulder",
-    "l_elbow",
-    "r_elbow",
-    "l_wrist",
-    "r_wrist",
-    "l_hip",
-    "r_hip",
-    "l_knee",
-    "r_knee",
-)
+# the joints the definitions read (back defaults to the midpoint of the hips)
+_NEEDED = tuple(n for n in JOINT_NAMES if n not in ("back", "head_top", "l_ankle", "r_ankle"))
 
 
 def _dist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
