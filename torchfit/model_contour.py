@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from torchfit.errors import ShapeError, check_shape
-from torchfit.render import render_silhouette
+from torchfit.render import outer_outlines, render_silhouette
 
 __all__ = [
     "EdgeSampler",
@@ -123,16 +123,6 @@ class ContourSelection:
         return ContourSelection(rep(self.samples), rep(self.sample_valid), rep(self.nearest), masks)
 
 
-def _outer_boundary(mask: np.ndarray) -> np.ndarray:
-    """(N, 2) (u, v) pixels of the outer contours of a binary mask."""
-    import cv2
-
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    if not contours:
-        return np.zeros((0, 2))
-    return np.concatenate([c[:, 0, :] for c in contours]).astype(np.float64)
-
-
 @torch.no_grad()
 def select_contour(
     sampler: EdgeSampler,
@@ -172,7 +162,8 @@ def select_contour(
         mask = render_silhouette(px[i].numpy(), faces, (w, h))
         masks.append(mask)
         boundary = np.ones((h, w), np.uint8)
-        bpix = _outer_boundary(mask).astype(np.int64)
+        outlines = outer_outlines(mask)
+        bpix = (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
         if len(bpix):
             boundary[bpix[:, 1], bpix[:, 0]] = 0
         dist = cv2.distanceTransform(boundary, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)

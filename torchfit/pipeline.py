@@ -38,7 +38,7 @@ from torchfit.io.dataset import Subject, load_dataset
 from torchfit.io.export import export_mesh, export_urdf, write_json
 from torchfit.io.images import load_frames
 from torchfit.measurements import MEASUREMENT_KEYS
-from torchfit.render import draw_polyline
+from torchfit.render import draw_polyline, outer_outlines
 from torchfit.segmentation import fit_background, segment
 
 __all__ = ["SubjectResult", "run", "segment_subject", "fit_batch", "write_summary"]
@@ -106,21 +106,14 @@ def segment_subject(subject: Subject, config: Config) -> tuple[torch.Tensor, tor
     return images, seg.masks[:, 0]
 
 
-def _outline(mask: np.ndarray) -> list[np.ndarray]:
-    import cv2
-
-    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    return [c[:, 0, :].astype(np.float64) for c in contours]
-
-
 def _overlay(image: np.ndarray, person: np.ndarray, model_mask: np.ndarray, label: str):
     """RGB overlay: person contour magenta, model contour green, a label."""
     import cv2
 
     out = image.copy()
-    for c in _outline(person):
+    for c in outer_outlines(person):
         draw_polyline(out, c, (255, 0, 255), thickness=2)
-    for c in _outline(model_mask):
+    for c in outer_outlines(model_mask):
         draw_polyline(out, c, (0, 200, 0), thickness=2)
     cv2.putText(out, label, (10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 3)
     cv2.putText(out, label, (10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 0, 0), 1)

@@ -8,9 +8,9 @@ import torch
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import Posture, pose_nominal
 from torchfit.camera import Camera, camera_centre, look_at, project_points
-from torchfit.render import draw_polyline, render_shaded, render_silhouette
+from torchfit.render import draw_polyline, outer_outlines, render_shaded, render_silhouette
 
-__all__ = ["nominal_view", "render_pose_preview", "silhouette_outline"]
+__all__ = ["nominal_view", "render_pose_preview"]
 
 
 def nominal_view(
@@ -31,14 +31,6 @@ def nominal_view(
         [[focal, 0.0, (w - 1) / 2], [0.0, focal, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64
     )
     return Camera(K=K, dist=torch.zeros(5, dtype=torch.float64), R=R, t=t, image_size=image_size)
-
-
-def silhouette_outline(mask: np.ndarray) -> list[np.ndarray]:
-    """Outer contours (N, 2) of a binary mask, as (u, v) pixel coordinates."""
-    import cv2
-
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    return [c[:, 0, :].astype(np.float64) for c in contours]
 
 
 def render_pose_preview(
@@ -77,6 +69,6 @@ def render_pose_preview(
     image = background if background is not None else np.full((h, w, 3), 235, np.uint8)
     image = render_shaded(px, depth, faces, normals, image)
     if outline:
-        for contour in silhouette_outline(render_silhouette(px, faces, (w, h))):
+        for contour in outer_outlines(render_silhouette(px, faces, (w, h))):
             draw_polyline(image, contour, (0, 160, 0), thickness=2)
     return image

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["render_silhouette", "render_shaded", "draw_polyline"]
+__all__ = ["render_silhouette", "render_shaded", "draw_polyline", "outer_outlines"]
 
 _SHIFT = 4  # sub-pixel bits for cv2 drawing
 
@@ -90,3 +90,13 @@ def draw_polyline(
     if len(points):
         cv2.polylines(image, [_fixed(points)], closed, color, thickness, cv2.LINE_AA, _SHIFT)
     return image
+
+
+def outer_outlines(mask: np.ndarray) -> list[np.ndarray]:
+    """Outer contours of every region of a binary (H, W) mask, each (N, 2) ``(u, v)`` float64."""
+    import cv2
+
+    contours, _ = cv2.findContours(
+        np.ascontiguousarray(mask, dtype=np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
+    )
+    return [c[:, 0, :].astype(np.float64) for c in contours]

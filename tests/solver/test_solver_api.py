@@ -24,14 +24,6 @@ T = torch.linspace(0.0, 3.0, 12, dtype=torch.float64)
 Y = 2.0 * torch.exp(-1.3 * T) + 0.5
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def exp_residual(x: torch.Tensor) -> torch.Tensor:
     """(N, 3) -> (N, 12): a * exp(-k t) + c - y."""
     return x[:, :1] * torch.exp(-x[:, 1:2] * T) + x[:, 2:3] - Y

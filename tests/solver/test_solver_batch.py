@@ -19,14 +19,6 @@ X0 = torch.tensor(
 )
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _record():
     log: list[LMIterate] = []
     return log, log.append

@@ -17,14 +17,6 @@ from torchfit.solver import (
 DATA = torch.linspace(0.0, 2.0, 7, dtype=torch.float64)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def residual(x: torch.Tensor) -> torch.Tensor:
     """(N, 3) -> (N, 7), written with in-place writes (as pytorch-kinematics does)."""
     out = torch.empty(x.shape[0], 7, dtype=x.dtype)

@@ -28,14 +28,6 @@ OPTIONS = LMOptions(max_iter=1000, ftol=1e-15, xtol=1e-15, gtol=0.0)
 KNOWN_START1_FAILURES = {"BoxBOD", "MGH10"}
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _solve(problems, starts, options=OPTIONS):
     fn, x0 = nist_strd.make_batch(problems, starts)
     lower = torch.full_like(x0, -torch.inf)

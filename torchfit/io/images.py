@@ -41,6 +41,18 @@ def list_images(folder: str | Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
+def _read_uint8(path: Path, what: str) -> np.ndarray:
+    """The 8-bit pixels of an image file as OpenCV reads them; DataError naming ``path``."""
+    if not path.is_file():
+        raise DataError(f"{what} not found: {path}")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DataError(f"cannot read {what} {path}: not a readable image file")
+    if img.dtype != np.uint8:
+        raise DataError(f"{what} {path}: expected 8-bit pixels, got dtype {img.dtype}")
+    return img
+
+
 def read_image(path: str | Path) -> np.ndarray:
     """Read a colour image as RGB.
 
@@ -57,13 +69,7 @@ def read_image(path: str | Path) -> np.ndarray:
         DataError: naming ``path`` if it is missing, unreadable or not an 8-bit image.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"image not found: {path}")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DataError(f"cannot read image {path}: not a readable image file")
-    if img.dtype != np.uint8:
-        raise DataError(f"image {path}: expected 8-bit pixels, got dtype {img.dtype}")
+    img = _read_uint8(path, "image")
     if img.ndim == 2:
         return np.ascontiguousarray(np.repeat(img[:, :, None], 3, axis=2))
     if img.ndim == 3 and img.shape[2] == 4:
@@ -86,13 +92,7 @@ def read_mask(path: str | Path) -> np.ndarray:
         DataError: naming ``path`` if it is missing, unreadable, not 8-bit or truly colour.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"mask not found: {path}")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DataError(f"cannot read mask {path}: not a readable image file")
-    if img.dtype != np.uint8:
-        raise DataError(f"mask {path}: expected 8-bit pixels, got dtype {img.dtype}")
+    img = _read_uint8(path, "mask")
     if img.ndim == 3:
         chan = img[:, :, :3]
         if not (
