@@ -15,7 +15,12 @@ from torchfit.body.model import BodyModel
 
 REPO = Path(__file__).resolve().parents[1]
 # a short fit: the pipeline is under test here, not the accuracy (see tests/test_fitting.py)
-FAST = ("--set", "solver.max_iter=2", "--set", "fit.contour_stride=3")
+FAST = (
+    "--set",
+    "fit.stages=[{name: all, scales: [all], joints: true, root: true, max_iter: 2}]",
+    "--set",
+    "fit.contour_stride=3",
+)
 
 
 @pytest.fixture(scope="module")

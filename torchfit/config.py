@@ -355,7 +355,14 @@ def config_from_dict(data: dict | None, source: str = "<dict>", schema: type = C
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: the top level must be a mapping, got {type(data).__name__}")
-    return _dataclass_from_dict(schema, data, "", source)
+    config = _dataclass_from_dict(schema, data, "", source)
+    if isinstance(config, Config):
+        poses = config.fit.poses
+        if not poses or len(set(poses)) != len(poses) or not set(poses) <= set(range(1, 7)):
+            raise ConfigError(
+                f"{source}: key 'fit.poses' must list distinct postures from 1..6, got {poses}"
+            )
+    return config
 
 
 def config_to_dict(config: Any) -> dict:

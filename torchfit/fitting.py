@@ -279,6 +279,47 @@ class SilhouetteFit:
         trans = torch.stack([tx, ty, torch.zeros_like(tx)], -1)
         return scales, angles, rot, trans
 
+    def pose_world(
+        self,
+        full: torch.Tensor,
+        j: int,
+        rows: torch.Tensor,
+        vertex_index: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posed vertices and segment origins of pose j, standing on the floor (world frame).
+
+        Args:
+            full: (N, P) parameters.
+            rows: (N,) subject index of each row.
+            vertex_index: optional (K,) template vertices to pose (default: all).
+
+        Returns:
+            (N, K, 3) vertices and (N, S, 3) segment origins, metres.
+        """
+        scales, angles, rot, trans = self.pose_state(full, j, rows)
+        soles = torch.tensor(self._soles, device=full.device)
+        if vertex_index is None:
+            vertex_index = torch.arange(self.model.template.vertices.shape[0], device=full.device)
+        idx = torch.cat([vertex_index, soles])
+        out = self.model(scales, angles, trans, rot, vertex_index=idx)
+        verts = out.vertices
+        floor = torch.minimum(verts[:, -2, 2], verts[:, -1, 2])
+        zero = torch.zeros_like(floor)
+        lift_z = torch.stack([zero, zero, floor], -1)[:, None]
+        return verts[:, :-2] - lift_z, out.origins - lift_z
+
+    def project(self, points: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """(N, K, 2) pixels of world points (N, K, 3) in each row's camera."""
+        cam = self.camera
+        cam_rows = Camera(
+            K=cam.K[rows],
+            dist=cam.dist[rows],
+            R=cam.R[rows],
+            t=cam.t[rows],
+            image_size=cam.image_size,
+        )
+        return project_points(points, cam_rows)
+
     def pose_pixels(
         self,
         full: torch.Tensor,
@@ -296,24 +337,7 @@ class SilhouetteFit:
         Returns:
             (N, K, 2) pixels.
         """
-        scales, angles, rot, trans = self.pose_state(full, j, rows)
-        soles = torch.tensor(self._soles, device=full.device)
-        if vertex_index is None:
-            vertex_index = torch.arange(self.model.template.vertices.shape[0], device=full.device)
-        idx = torch.cat([vertex_index, soles])
-        verts = self.model(scales, angles, trans, rot, vertex_index=idx).vertices
-        floor = torch.minimum(verts[:, -2, 2], verts[:, -1, 2])
-        zero = torch.zeros_like(floor)
-        verts = verts[:, :-2] - torch.stack([zero, zero, floor], -1)[:, None]
-        cam = self.camera
-        cam_rows = Camera(
-            K=cam.K[rows],
-            dist=cam.dist[rows],
-            R=cam.R[rows],
-            t=cam.t[rows],
-            image_size=cam.image_size,
-        )
-        return project_points(verts, cam_rows)
+        return self.project(self.pose_world(full, j, rows, vertex_index)[0], rows)
 
     @torch.no_grad()
     def select(self, full: torch.Tensor) -> dict[int, ContourSelection]:

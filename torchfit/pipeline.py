@@ -149,13 +149,24 @@ def fit_batch(
 
     start = time.perf_counter()
     names = [p.subject.name for p in prepared]
-    masks = torch.stack([p.masks for p in prepared])
+    used = [j - 1 for j in config.fit.poses]  # the fitted postures, in fit.poses order
+    masks = torch.stack([p.masks[used] for p in prepared])
     cameras = stack_cameras([p.subject.camera for p in prepared])
     person = person_data_from_masks(
         masks, cameras, config.segmentation.distance, config.fit.contour_stride, model.dtype
     )
     fit = SilhouetteFit(model, person, config.fit, config.model)
-    x = fit.initial_params()
+    starts = None
+    if config.fit.initial_guess == "parts":
+        from torchfit.initial_guess import parts_start
+
+        images = torch.stack([p.images[used] for p in prepared])
+        x, starts = parts_start(fit, masks, images, config.parts)
+        for name, info in zip(names, starts, strict=True):
+            if info.message:
+                log.info("%s: initial guess %s: %s", name, info.source, info.message)
+    else:
+        x = fit.initial_params()
     solver_cfg = config.solver
     stages_out: list[list[dict]] = [[] for _ in prepared]
     for si, stage in enumerate(config.fit.stages):
@@ -237,7 +248,7 @@ def fit_batch(
             status = "ok"
         measurements = {k: float(v[i]) for k, v in measures.items()}
         poses = {}
-        for k, j in enumerate(fit.poses):
+        for j in fit.poses:
             s_, angles, rot, trans = fit.pose_state(x[i : i + 1], j, rows[i : i + 1])
             poses[f"pose{j}"] = {
                 "name": POSTURES[j - 1].name,
@@ -256,10 +267,10 @@ def fit_batch(
             if config.output.overlays:
                 import cv2
 
-                image = (prep.images[k].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+                image = (prep.images[j - 1].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
                 overlay = _overlay(
                     image,
-                    prep.masks[k].numpy(),
+                    prep.masks[j - 1].numpy(),
                     selections[j].masks[i],
                     f"{prep.subject.name} pose{j} {POSTURES[j - 1].name}",
                 )
@@ -288,6 +299,7 @@ def fit_batch(
                 "segment_scales": dict(
                     zip(model.template.segments, scales[i].tolist(), strict=True)
                 ),
+                "initial_guess": starts[i].to_dict() if starts else {"source": "template"},
                 "poses": poses,
                 "stages": stages_out[i],
             },
