@@ -1,12 +1,14 @@
 """Speed of the segmentation chain and of the chamfer transform on this machine's CPU.
 
     python benchmarks/bench_segmentation.py [--batch 1 8 16] [--repeats 7] [--threads N]
+        [--modes eager compiled]
 
 Prints machine and versions, then
 
 1. frames per second at 720x576 for the whole chain, batched: Mahalanobis test (HSL),
    clean-up (opening, largest region, closing, hole filling), ordered outer contour, contour
-   mask and 3-4 chamfer distance map; with the time of each stage;
+   mask and 3-4 chamfer distance map; with the time of each stage; the colour test eager and
+   through ``torch.compile`` (``segmentation.compile: true``; compile time printed apart);
 2. the torch 3-4 chamfer transform against ``cv2.distanceTransform(DIST_L2, 3)`` on the same
    contour images (both per image), and the exact Euclidean option.
 
@@ -94,6 +96,13 @@ def main() -> None:
     p.add_argument("--batch", type=int, nargs="+", default=[1, 8, 16])
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument(
+        "--modes",
+        nargs="+",
+        choices=("eager", "compiled"),
+        default=["eager", "compiled"],
+        help="colour test eager and/or through torch.compile (segmentation.compile)",
+    )
     args = p.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -102,16 +111,23 @@ def main() -> None:
     cfg = SegmentationConfig()
 
     print(f"\n1. whole chain at {W}x{H}, CPU, median of {args.repeats}")
-    print("   batch  frames/s  ms/frame | test  clean-up  contour  dist-map   (ms/frame)")
+    print(
+        "   colour test  batch  frames/s  ms/frame | test  clean-up  contour  dist-map   (ms/frame)"
+    )
     contours_for_dt = None
-    for b in args.batch:
+    for mode, b in [(m, b) for m in args.modes for b in args.batch]:
         frames, images = scene(b, gen)
         model = fit_background(frames, cfg)
         stages = {}
-
-        def chain(stages=stages, model=model, images=images):
+        compiled = mode == "compiled"
+        if compiled:  # compile outside the timing (torch caches the kernel on disk)
             t0 = time.perf_counter()
-            raw = mahalanobis_distance(model, images) > cfg.threshold
+            mahalanobis_distance(model, images, compiled=True)
+            print(f"   (compiling for batch {b}: {time.perf_counter() - t0:.1f} s)")
+
+        def chain(stages=stages, model=model, images=images, compiled=compiled):
+            t0 = time.perf_counter()
+            raw = mahalanobis_distance(model, images, compiled=compiled) > cfg.threshold
             t1 = time.perf_counter()
             masks = clean_mask(raw, cfg.open_kernel, cfg.close_kernel, cfg.fill_holes)
             t2 = time.perf_counter()
@@ -133,8 +149,8 @@ def main() -> None:
         total = median_time(chain, args.repeats)
         per = {k: statistics.median(v[1:]) / b * 1e3 for k, v in stages.items()}
         print(
-            f"   {b:5d}  {b / total:8.1f}  {total / b * 1e3:8.1f} | {per['test']:5.1f}  "
-            f"{per['clean']:8.1f}  {per['contour']:7.1f}  {per['dist']:8.1f}"
+            f"   {mode:11s}  {b:5d}  {b / total:8.1f}  {total / b * 1e3:8.1f} | "
+            f"{per['test']:5.1f}  {per['clean']:8.1f}  {per['contour']:7.1f}  {per['dist']:8.1f}"
         )
         contours_for_dt = contour_mask(
             clean_mask(mahalanobis_distance(model, images) > cfg.threshold)

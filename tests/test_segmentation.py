@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import colorsys
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -80,6 +81,25 @@ def test_background_mean_covariance_and_distance_match_numpy() -> None:
                 diff = test[b, :, y, x] - mu
                 ref = math.sqrt(diff @ np.linalg.solve(cov, diff))
                 assert dist[b, 0, y, x].item() == pytest.approx(ref, rel=1e-9)
+
+
+@pytest.mark.skipif(
+    not any(shutil.which(c) for c in ("c++", "g++", "clang++")),
+    reason="torch.compile on CPU needs a C++ compiler",
+)
+def test_compiled_colour_test_equals_eager() -> None:
+    """segmentation.compile: the fused kernel gives the eager distances (float32 rounding)."""
+    gen = torch.Generator().manual_seed(5)
+    frames = quantise(0.1 + 0.8 * torch.rand(6, 3, 24, 40, generator=gen))
+    model = fit_background(frames, SegmentationConfig(gamma=0.7))
+    images = quantise(torch.rand(3, 3, 24, 40, generator=gen))
+    images[0, :, :4, :4] = 0.5  # grey: zero chroma, the hue's guarded division
+    eager = mahalanobis_distance(model, images)
+    compiled = mahalanobis_distance(model, images, compiled=True)
+    torch.testing.assert_close(compiled, eager, rtol=1e-4, atol=1e-3)
+    masks = segment(images, model, SegmentationConfig(gamma=0.7)).masks
+    fused = segment(images, model, SegmentationConfig(gamma=0.7, compile=True)).masks
+    assert (masks != fused).float().mean() < 1e-3  # only ties at the threshold may differ
 
 
 def test_temporal_median_matches_reference_and_ignores_the_person() -> None:

@@ -99,6 +99,9 @@ class SegmentationConfig:
     # passes the colour test too); 1 applies it everywhere
     shadow_band: float = 1.0
     distance: Literal["chamfer", "euclidean"] = "chamfer"
+    # run the per-pixel colour test through torch.compile (needs a C++ compiler on CPU; about a
+    # minute to compile the first time, cached afterwards; several times faster per frame)
+    compile: bool = False
 
 
 @dataclass
