@@ -35,7 +35,6 @@ from torchfit.fitting import SilhouetteFit, person_data_from_masks  # noqa: E402
 from torchfit.initial_guess import parts_start  # noqa: E402
 from torchfit.io.dataset import load_dataset  # noqa: E402
 from torchfit.pipeline import segment_subject  # noqa: E402
-from torchfit.solver import LMOptions  # noqa: E402
 
 KEYS = ("height", "arm_span", "lower_leg", "thigh", "upper_arm", "forearm", "shoulder_width")
 #: The first paper's Table 1 mean errors: a fit within all three found the right answer.
@@ -73,14 +72,7 @@ def fit_from(fit, x, config):
                 trace[i].append(float(it.cost[i]))
 
     for stage in config.fit.stages:
-        options = LMOptions(
-            max_iter=stage.max_iter or config.solver.max_iter,
-            ftol=config.solver.ftol,
-            xtol=config.solver.xtol,
-            gtol=config.solver.gtol,
-            initial_damping=config.solver.initial_damping,
-            step_bound=config.solver.step_bound,
-        )
+        options = config.solver.lm_options(stage.max_iter or config.solver.max_iter)
         n_before = [len(t) for t in trace]
         x, res = fit.solve_stage(x, stage, options, callback=record)
         for i in range(fit.batch):

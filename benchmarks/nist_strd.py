@@ -1,9 +1,9 @@
 """The NIST StRD nonlinear regression problems: parser, hand-coded models and batching helpers.
 
-Shared by ``tests/solver/test_nist.py`` and ``benchmarks/bench_solver.py``. The ``.dat`` files
-(27 problems, see ``shared/data/nist-strd/README.md``) hold a model equation as text only; each
-model is coded here by hand from the header of its file. ``b`` is ``(N, P)`` (one parameter row
-per problem copy) and the predictor ``x`` is ``(M,)`` (``(M, 2)`` for Nelson); every model
+Shared by ``tests/solver/test_solver_nist.py`` and ``benchmarks/bench_solver.py``. The ``.dat``
+files (27 problems, see ``shared/data/nist-strd/README.md``) hold a model equation as text only;
+each model is coded here by hand from the header of its file. ``b`` is ``(N, P)`` (one parameter
+row per problem copy) and the predictor ``x`` is ``(M,)`` (``(M, 2)`` for Nelson); every model
 returns ``(N, M)`` predictions. Nelson's response is ``log(y)``.
 """
 

@@ -15,11 +15,14 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import TYPE_CHECKING, Any, Literal, Union
 
 import yaml
 
 from torchfit.errors import ConfigError
+
+if TYPE_CHECKING:
+    from torchfit.solver import LMOptions
 
 __all__ = [
     "RunConfig",
@@ -120,7 +123,22 @@ class SolverConfig:
     max_bad_steps: int = 10
     step_bound: float | None = 100.0
     fold_batch: bool = True
+    geodesic_acceleration: bool = False
+    accel_ratio: float = 0.75
+    max_nfev: int | None = None
     jacobian: Literal["autograd", "forward", "reverse", "numeric"] = "autograd"
+
+    def lm_options(self, max_iter: int | None = None) -> LMOptions:
+        """These options as :class:`torchfit.solver.LMOptions` (``max_iter`` overrides, for a
+        stage's own limit)."""
+        from torchfit.solver import LMOptions
+
+        values = {
+            f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "jacobian"
+        }
+        if max_iter is not None:
+            values["max_iter"] = max_iter
+        return LMOptions(**values)
 
 
 @dataclass

@@ -145,7 +145,6 @@ def fit_batch(
         run_dir: the run folder (subject outputs go to ``run_dir / name``).
         tb: optional TensorBoard logger (:class:`torchfit.tb_logging.TensorBoardCallback`).
     """
-    from torchfit.solver import LMOptions
 
     start = time.perf_counter()
     names = [p.subject.name for p in prepared]
@@ -170,14 +169,7 @@ def fit_batch(
     solver_cfg = config.solver
     stages_out: list[list[dict]] = [[] for _ in prepared]
     for si, stage in enumerate(config.fit.stages):
-        options = LMOptions(
-            max_iter=stage.max_iter or solver_cfg.max_iter,
-            ftol=solver_cfg.ftol,
-            xtol=solver_cfg.xtol,
-            gtol=solver_cfg.gtol,
-            initial_damping=solver_cfg.initial_damping,
-            step_bound=solver_cfg.step_bound,
-        )
+        options = solver_cfg.lm_options(stage.max_iter or solver_cfg.max_iter)
         tag = f"stage{si + 1}_{stage.name}"
         if solver_cfg.jacobian == "numeric":
             from torchfit.baseline import minpack_stage

@@ -47,6 +47,10 @@ def test_import_does_not_load_tensorboard():
         ({"min_diag": 1.0, "max_diag": 0.5}, r"LMOptions.min_diag: expected <= max_diag"),
         ({"step_bound": -1.0}, r"LMOptions.step_bound: expected None or a finite number > 0"),
         ({"max_bad_steps": 0}, r"LMOptions.max_bad_steps: expected >= 1, got 0"),
+        ({"geodesic_acceleration": 1}, r"LMOptions.geodesic_acceleration: expected a bool"),
+        ({"accel_ratio": 0.0}, r"LMOptions.accel_ratio: expected a finite number > 0"),
+        ({"max_nfev": 0}, r"LMOptions.max_nfev: expected None or an int >= 1, got 0"),
+        ({"max_nfev": 10.0}, r"LMOptions.max_nfev: expected None or an int >= 1, got 10.0"),
     ],
 )
 def test_bad_options_raise(kwargs, message):
@@ -173,7 +177,9 @@ def test_max_iter_and_gtol_statuses():
     x0 = torch.tensor([[1.0, 1.0, 0.0]], dtype=torch.float64)
     res = levenberg_marquardt(exp_residual, x0, LMOptions(max_iter=2))
     assert res.statuses == [LMStatus.MAX_ITER] and int(res.n_iter[0]) == 2
-    assert res.message == ["number of iterations reached max_iter"]
+    assert res.message == [
+        "number of iterations reached max_iter (or residual evaluations max_nfev)"
+    ]
     # Already at a zero-residual optimum: the gradient test stops before any step.
     exact = torch.tensor([[2.0, 1.3, 0.5]], dtype=torch.float64)
     res = levenberg_marquardt(exp_residual, exact, LMOptions(gtol=1e-8))
@@ -222,6 +228,11 @@ def test_solver_config_mirrors_lm_options():
     assert cfg.pop("jacobian") == "autograd"
     assert cfg == opts
     assert LMOptions(**cfg) == LMOptions()
+    # The pipeline's conversion carries every field, and a stage's own limit.
+    custom = SolverConfig(ftol=1e-3, max_bad_steps=3, geodesic_acceleration=True, max_nfev=50)
+    assert custom.lm_options(7) == LMOptions(
+        max_iter=7, ftol=1e-3, max_bad_steps=3, geodesic_acceleration=True, max_nfev=50
+    )
 
 
 def test_step_bound_limits_a_long_first_step():
@@ -237,3 +248,49 @@ def test_step_bound_limits_a_long_first_step():
     opts = LMOptions(max_iter=1, initial_damping=1e-9, step_bound=None)
     levenberg_marquardt(fn, x0, opts, callback=log.append)
     assert float(log[0].x) == pytest.approx(1e6, rel=1e-6)
+
+
+def test_max_nfev_counts_evaluations_as_lmdif():
+    # P = 3 free parameters: the start costs 1 evaluation, each Jacobian 3, each trial 1.
+    x0 = torch.tensor([[1.0, 1.0, 0.0]], dtype=torch.float64)
+    res = levenberg_marquardt(exp_residual, x0, LMOptions(max_nfev=12, gtol=0.0))
+    spent = int(res.nfev[0]) + 3 * int(res.njev[0])
+    assert res.statuses == [LMStatus.MAX_ITER] and 12 <= spent < 12 + 3 + 1
+    # A parameter held by equal bounds is not free: its Jacobian column costs nothing.
+    lower = torch.tensor([-torch.inf, -torch.inf, 0.0], dtype=torch.float64)
+    upper = torch.tensor([torch.inf, torch.inf, 0.0], dtype=torch.float64)
+    res = levenberg_marquardt(
+        exp_residual, x0, LMOptions(max_nfev=12, gtol=0.0), lower=lower, upper=upper
+    )
+    spent = int(res.nfev[0]) + 2 * int(res.njev[0])
+    assert res.statuses == [LMStatus.MAX_ITER] and 12 <= spent < 12 + 2 + 1
+    # MINPACK gets the same budget from the same options.
+    base = minpack_baseline(exp_residual, x0, LMOptions(max_nfev=12, gtol=0.0))
+    assert base.statuses == [LMStatus.MAX_ITER] and int(base.nfev[0]) >= 12
+
+
+def test_geodesic_acceleration_first_step_by_hand():
+    # r(x) = (x0² - 2, x0 x1 - 1, x1 - 0.5): quadratic, so the finite difference along v gives
+    # the exact second directional derivative r_vv = (2 v0², 2 v0 v1, 0).
+    def fn(x):
+        return torch.stack([x[:, 0] ** 2 - 2, x[:, 0] * x[:, 1] - 1, x[:, 1] - 0.5], dim=1)
+
+    x0 = torch.tensor([[1.0, 2.0]], dtype=torch.float64)
+    opts = LMOptions(max_iter=1, geodesic_acceleration=True, accel_ratio=10.0, step_bound=None)
+    log = []
+    res = levenberg_marquardt(fn, x0, opts, callback=log.append)
+    x, r = x0[0], fn(x0)[0]
+    jac = torch.tensor([[2 * x[0], 0.0], [x[1], x[0]], [0.0, 1.0]], dtype=torch.float64)
+    a_mat = jac.T @ jac
+    damped = a_mat + opts.initial_damping * torch.diag(torch.diagonal(a_mat))
+    v = torch.linalg.solve(damped, -jac.T @ r)
+    rvv = torch.stack([2 * v[0] ** 2, 2 * v[0] * v[1], torch.zeros((), dtype=torch.float64)])
+    a = torch.linalg.solve(damped, -jac.T @ rvv)
+    assert bool(log[0].accepted[0])
+    torch.testing.assert_close(res.x[0], x + v + 0.5 * a, rtol=1e-9, atol=0)
+    assert int(res.nfev[0]) == 3  # start, acceleration probe, trial
+    # A step with |D a| > accel_ratio |D v| is rejected without evaluating it.
+    strict = LMOptions(max_iter=1, geodesic_acceleration=True, accel_ratio=1e-6, step_bound=None)
+    res = levenberg_marquardt(fn, x0, strict)
+    torch.testing.assert_close(res.x, x0)
+    assert int(res.nfev[0]) == 2 and float(res.damping[0]) == 2 * opts.initial_damping

@@ -24,9 +24,19 @@ def _record():
     return log, log.append
 
 
-@pytest.mark.parametrize("jacobian", ["autograd", "reverse", "numeric"])
-def test_batch_equals_each_problem_alone(jacobian):
-    opts = LMOptions(max_iter=60, ftol=1e-14, xtol=1e-14, gtol=1e-14, max_bad_steps=4)
+@pytest.mark.parametrize(
+    ("jacobian", "accel"),
+    [("autograd", False), ("reverse", False), ("numeric", False), ("autograd", True)],
+)
+def test_batch_equals_each_problem_alone(jacobian, accel):
+    opts = LMOptions(
+        max_iter=60,
+        ftol=1e-14,
+        xtol=1e-14,
+        gtol=1e-14,
+        max_bad_steps=4,
+        geodesic_acceleration=accel,
+    )
     log, cb = _record()
     batch = levenberg_marquardt(make_mixed(KINDS, DATA), X0, opts, jacobian=jacobian, callback=cb)
     statuses = set()

@@ -52,6 +52,28 @@ def test_autograd_jacobians_match_finite_differences(fold):
     torch.testing.assert_close(rev, fwd, rtol=1e-12, atol=1e-12)
 
 
+def test_forward_mode_unfolds_large_batches(monkeypatch):
+    # Where one copy of the batch holds FORWARD_UNFOLD_MIN_RESIDUALS residuals (B * M), forward
+    # mode makes one call per tangent on (B, P) instead of one on (P*B, P): same Jacobian.
+    from torchfit.solver import jacobians
+
+    folded = jacobian_forward(residual, X, 7, None)
+    rows = []
+
+    def spy(v):
+        rows.append(v.shape[0])
+        return residual(v)
+
+    monkeypatch.setattr(jacobians, "FORWARD_UNFOLD_MIN_RESIDUALS", 3 * 7)
+    unfolded = jacobian_forward(spy, X, 7, None)
+    assert rows == [3, 3, 3]
+    torch.testing.assert_close(unfolded, folded, rtol=0, atol=0)
+    rows.clear()
+    monkeypatch.setattr(jacobians, "FORWARD_UNFOLD_MIN_RESIDUALS", 3 * 7 + 1)
+    jacobian_forward(spy, X, 7, None)
+    assert rows == [9]
+
+
 @pytest.mark.parametrize("fold", [True, False])
 def test_numeric_jacobian_matches_and_uses_the_documented_step(fold):
     r = residual(X)

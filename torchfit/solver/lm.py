@@ -12,15 +12,32 @@ One iteration, for every running problem (references in brackets):
    ``min_lm_diagonal`` / ``max_lm_diagonal``]; then the ``gtol`` test.
 2. Solve ``(A + mu D²) h = -g`` by Cholesky (``torch.linalg.cholesky_ex``). The damped matrix
    is rebuilt from the undamped ``A`` on every try. A failed factorisation counts as a bad step.
+   With ``geodesic_acceleration``, ``h`` is the velocity ``v`` of a second-order step
+   ``v + a/2`` (see below).
 3. Project ``x + h`` onto the bounds, evaluate the residual there (one evaluation) and form the
-   gain ratio ``rho = (F(x) - F(x_new)) / (L(0) - L(h))`` with the Gauss–Newton model ``L``.
-   A non-finite trial residual counts as a bad step.
+   gain ratio ``rho = (F(x) - F(x_new)) / (L(0) - L(h))`` with the Gauss–Newton model ``L``
+   (``L(v)`` with the geodesic acceleration). A non-finite trial residual counts as a bad step.
 4. Accept when ``rho > accept_ratio`` (x, r and cost move to the trial point); otherwise the
    trial is rejected and x is kept. Damping follows Nielsen: on acceptance
    ``mu *= max(1/3, 1 - (2 rho - 1)³)``, ``nu = 2``; on rejection or a bad step ``mu *= nu``,
    ``nu *= 2`` [Nielsen 1999; Madsen, Nielsen & Tingleff 2004, eq. 3.16]. ``max_bad_steps``
    consecutive bad steps fail the problem.
-5. MINPACK's convergence tests (``lmder``: info 1–8) [Moré, Garbow & Hillstrom 1980].
+5. MINPACK's convergence tests (``lmder``: info 1–8) [Moré, Garbow & Hillstrom 1980]; the
+   limits ``max_iter`` (trial steps) and ``max_nfev`` (residual evaluations, a Jacobian counting
+   one per free parameter as ``lmdif``'s forward differences) give info 5.
+
+Geodesic acceleration (``LMOptions.geodesic_acceleration``) [Transtrum, Machta & Sethna 2011;
+Transtrum & Sethna 2012]: the LM step ``v`` is the first-order term of a geodesic on the model
+manifold; the second-order term ``a = -(A + mu D²)⁻¹ Jᵀ r_vv`` uses the second directional
+derivative ``r_vv`` of the residual along ``v``, by the finite difference
+``r_vv ≈ (2/t) ((r(x + t v) - r(x)) / t - J v)`` with ``t = 0.1`` (one more evaluation per trial;
+the Cholesky factor is reused). The trial step is ``v + a/2``; one whose scaled acceleration is
+large, ``|D a| > accel_ratio |D v|``, leaves the quadratic model's region of validity and is
+rejected without evaluating it (the damping grows as on any rejection). The gain ratio
+compares the actual reduction with the Gauss–Newton prediction for ``v``: the acceleration
+corrects the step along the path that prediction is for. It lets the method follow narrow
+curved valleys with longer steps and keeps steps from running onto plateaus where parameters
+"evaporate" (an exponential rate running off to infinity, as BoxBOD from NIST's Start 1).
 
 Bounds (optional) are handled by projection: a trial point is clipped to ``[lower, upper]``,
 and a variable that sits on a bound with the gradient pointing out of the box (or whose bounds
@@ -36,6 +53,10 @@ References:
     H. B. Nielsen, "Damping parameter in Marquardt's method", IMM-REP-1999-05, DTU, 1999.
     K. Madsen, H. B. Nielsen, O. Tingleff, "Methods for non-linear least squares problems",
     2nd ed., DTU, 2004.
+    M. K. Transtrum, B. B. Machta, J. P. Sethna, "Geometry of nonlinear least squares with
+    applications to sloppy models and optimization", Phys. Rev. E 83, 036701, 2011.
+    M. K. Transtrum, J. P. Sethna, "Improvements to the Levenberg–Marquardt algorithm for
+    nonlinear least-squares minimization", arXiv:1201.5885, 2012.
     C. Kanzow, N. Yamashita, M. Fukushima, "Levenberg–Marquardt methods with strong local
     convergence properties for solving nonlinear equations with convex constraints",
     J. Comput. Appl. Math. 172, 2004.
@@ -57,6 +78,9 @@ Callback = Callable[[LMIterate], "bool | None"]
 
 _BAD_NONFINITE = 1
 _BAD_LINALG = 2
+# Finite-difference step t along the velocity for the second directional derivative of the
+# geodesic acceleration (Transtrum & Sethna 2012, section IV: t = 0.1).
+_ACCEL_FD_STEP = 0.1
 
 
 def _check_bound(name: str, bound: torch.Tensor | None, x0: torch.Tensor) -> torch.Tensor | None:
@@ -140,6 +164,7 @@ def levenberg_marquardt(
         return v
 
     has_bounds = lo is not None or hi is not None
+    accel = opts.geodesic_acceleration
     fixed = torch.zeros(bsz, p, dtype=torch.bool, device=device)
     if lo is not None and hi is not None:
         fixed = lo == hi
@@ -162,6 +187,10 @@ def levenberg_marquardt(
         nu = torch.full((bsz,), 2.0, dtype=dtype, device=device)
         diag2 = torch.zeros(bsz, p, dtype=dtype, device=device)
         a_mat = torch.zeros(bsz, p, p, dtype=dtype, device=device)
+        # The Jacobian of the last update (kept for J v in the geodesic acceleration only).
+        jac_cur = torch.zeros(bsz, m, p, dtype=dtype, device=device) if accel else None
+        # Free parameters per problem: what a Jacobian costs in evaluations for max_nfev.
+        n_free = (~fixed).sum(dim=1)
         grad = torch.zeros(bsz, p, dtype=dtype, device=device)
         gnorm = torch.zeros(bsz, dtype=dtype, device=device)
         need_jac = torch.ones(bsz, dtype=torch.bool, device=device)
@@ -189,15 +218,24 @@ def levenberg_marquardt(
                     r = torch.where(upd[:, None], r_new, r)
                     cost = torch.where(upd, cost_of(r_new), cost)
                 njev += upd.long()
-                jac_ok = torch.isfinite(jac).flatten(1).all(dim=1)
-                status[upd & ~jac_ok] = LMStatus.NONFINITE
+                # Rows not updated are computed too (and then not selected): a row of the
+                # batched products depends on that row of J only. The built-in Jacobians are
+                # (B, M, P) views of (B, P, M) storage, the fast layout for these products.
+                jac_t = jac.transpose(1, 2)
+                a_new = jac_t @ jac
+                g_new = (jac_t @ r[:, :, None])[:, :, 0]
+                # J is finite where JᵀJ is (a non-finite entry of J makes its diagonal
+                # non-finite); the exact test on J runs only where JᵀJ is not (it may also
+                # overflow for finite J).
+                jac_ok = torch.isfinite(a_new.sum(dim=(1, 2)))
+                if not bool(jac_ok.all()):
+                    jac_ok = torch.isfinite(jac).flatten(1).all(dim=1)
+                status = torch.where(upd & ~jac_ok, int(LMStatus.NONFINITE), status)
                 upd = upd & jac_ok
-                all_upd = bool(upd.all())
-                jz = jac if all_upd else torch.where(upd[:, None, None], jac, zero)
-                a_new = jz.transpose(1, 2) @ jz
-                g_new = (jz * r[:, :, None]).sum(dim=1)
                 sel = upd[:, None]
                 a_mat = torch.where(sel[:, :, None], a_new, a_mat)
+                if jac_cur is not None:
+                    jac_cur = torch.where(sel[:, :, None], jac, jac_cur)
                 grad = torch.where(sel, g_new, grad)
                 col2 = torch.diagonal(a_new, dim1=1, dim2=2)
                 # MINPACK mode 1: diag = max(diag, column norm); Ceres-style clamp of D².
@@ -206,13 +244,13 @@ def levenberg_marquardt(
                 need_jac = need_jac & ~upd
                 # gtol: max_j |J_jᵀ r| / (|J_j| |r|) over non-zero, free columns (MINPACK).
                 rnorm = torch.sqrt(2 * cost)
-                free = ~_frozen(x, g_new, fixed, lo, hi)
+                counted = (col2 > 0) & (rnorm[:, None] > 0)
+                if has_bounds:
+                    counted = counted & ~_frozen(x, g_new, fixed, lo, hi)
                 denom = torch.sqrt(col2) * rnorm[:, None]
-                cosines = torch.where(
-                    (col2 > 0) & free & (rnorm[:, None] > 0), g_new.abs() / denom, zero
-                )
+                cosines = torch.where(counted, g_new.abs() / denom, zero)
                 gnorm = torch.where(upd, cosines.amax(dim=1), gnorm)
-                status[upd & (gnorm <= opts.gtol)] = LMStatus.GTOL
+                status = torch.where(upd & (gnorm <= opts.gtol), int(LMStatus.GTOL), status)
                 running = status == LMStatus.RUNNING
                 if not bool(running.any()):
                     break
@@ -220,6 +258,7 @@ def levenberg_marquardt(
             # 2. Damped normal equations, rebuilt from the undamped A on every try.
             damped = a_mat + torch.diag_embed(mu[:, None] * diag2)
             rhs = -grad
+            keep = None
             if has_bounds:
                 keep = (~_frozen(x, grad, fixed, lo, hi)).to(dtype)
                 damped = damped * keep[:, :, None] * keep[:, None, :] + torch.diag_embed(1 - keep)
@@ -238,20 +277,37 @@ def levenberg_marquardt(
                 bound = torch.where(bound > 0, bound, torch.full_like(bound, opts.step_bound))
                 dh = (dnorm * h).norm(dim=1)
                 h = h * torch.where(dh > bound, bound / dh, torch.ones_like(dh))[:, None]
+            too_curved = None
+            if accel:
+                vel = h
+                h, too_curved, n_fd = _geodesic_acceleration(
+                    residual_fn, x, r, mask, jac_cur, factor, vel, diag2, keep, solved, opts
+                )
+                nfev += n_fd
 
             # 3. Trial point (projected) and gain ratio.
-            x_try = torch.where(solved[:, None], project(x + h) if has_bounds else x + h, x)
+            x_new = x + h
+            x_try = project(x_new) if has_bounds else x_new
+            x_try = torch.where(solved[:, None], x_try, x)
             step = x_try - x
             r_try, mask_try = evaluate_residual(residual_fn, x_try, m)
-            nfev += solved.long()
+            # A step rejected for its acceleration counts as not evaluated: no evaluation, no
+            # convergence test, and not a bad step (it only raises the damping).
+            tried = solved if too_curved is None else solved & ~too_curved
+            nfev += tried.long()
             cost_try = cost_of(r_try)
-            finite = solved & torch.isfinite(cost_try)
-            clipped = (step != h_lm).any(dim=1)
-            s_as = (step[:, :, None] * a_mat * step[:, None, :]).sum(dim=(1, 2))
-            g_s = (grad * step).sum(dim=1)
+            finite = tried & torch.isfinite(cost_try)
+            # The model's prediction is for the step taken or, with the acceleration, for the
+            # velocity (where the bounds did not clip the step).
+            step_pred = step
+            if accel:
+                step_pred = torch.where((x_try != x_new).any(dim=1, keepdim=True), step, vel)
+            clipped = (step_pred != h_lm).any(dim=1)
+            s_as = (step_pred[:, :, None] * a_mat * step_pred[:, None, :]).sum(dim=(1, 2))
+            g_s = (grad * step_pred).sum(dim=1)
             pred_general = -g_s - 0.5 * s_as
             # L(0) - L(h) = 0.5 hᵀ(mu D² h - g) for the unclipped step (Madsen et al. eq. 3.9b).
-            pred_lm = 0.5 * ((mu[:, None] * diag2 * step * step).sum(dim=1) - g_s)
+            pred_lm = 0.5 * ((mu[:, None] * diag2 * step_pred * step_pred).sum(dim=1) - g_s)
             pred = torch.where(clipped, pred_general, pred_lm)
             actual = cost - cost_try
             rho = torch.where(finite & (pred > 0), actual / pred, torch.full_like(pred, -1.0))
@@ -261,7 +317,7 @@ def levenberg_marquardt(
             shrink = torch.clamp(1 - (2 * rho - 1) ** 3, min=1.0 / 3.0)
             mu = torch.where(accepted, mu * shrink, torch.where(running, mu * nu, mu))
             nu = torch.where(accepted, torch.full_like(nu, 2.0), torch.where(running, nu * 2, nu))
-            is_bad = running & ~finite
+            is_bad = running & ~finite if too_curved is None else running & ~(finite | too_curved)
             bad = torch.where(is_bad, bad + 1, torch.where(running, torch.zeros_like(bad), bad))
             kind = torch.where(solved, _BAD_NONFINITE, _BAD_LINALG)
             bad_kind = torch.where(is_bad, kind, bad_kind)
@@ -294,7 +350,10 @@ def levenberg_marquardt(
             fail = running & (bad >= opts.max_bad_steps)
             fail_code = torch.where(bad_kind == _BAD_LINALG, LMStatus.LINALG, LMStatus.NONFINITE)
             new = torch.where((new == 0) & fail, fail_code, new)
-            new = torch.where((new == 0) & (n_iter >= opts.max_iter), LMStatus.MAX_ITER, new)
+            limit = n_iter >= opts.max_iter
+            if opts.max_nfev is not None:
+                limit = limit | (nfev + n_free * njev >= opts.max_nfev)
+            new = torch.where((new == 0) & limit, LMStatus.MAX_ITER, new)
             c6 = finite & (actred.abs() <= eps) & (prered <= eps) & ratio_ok
             c7 = finite & (dxnorm <= eps * xnorm)
             c8 = gnorm <= eps
@@ -333,3 +392,45 @@ def _frozen(
     if hi is not None:
         frozen |= (x >= hi) & (grad < 0)
     return frozen
+
+
+def _geodesic_acceleration(
+    residual_fn: ResidualFn,
+    x: torch.Tensor,
+    r: torch.Tensor,
+    mask: torch.Tensor | None,
+    jac: torch.Tensor,
+    factor: torch.Tensor,
+    vel: torch.Tensor,
+    diag2: torch.Tensor,
+    keep: torch.Tensor | None,
+    solved: torch.Tensor,
+    opts: LMOptions,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The step ``v + a/2`` with the geodesic acceleration ``a`` [Transtrum & Sethna 2012].
+
+    ``r_vv ≈ (2/t) ((r(x + t v) - r(x)) / t - J v)`` (one residual evaluation, ``t = 0.1``) and
+    ``a = -(JᵀJ + mu D²)⁻¹ Jᵀ r_vv`` with the Cholesky ``factor`` of the velocity's system.
+    Where ``r(x + t v)`` or ``a`` is not finite, ``a = 0`` (the plain LM step).
+
+    Returns:
+        ``(h, too_curved, nfev)``: the step, a ``(B,)`` bool of steps with
+        ``|D a| > accel_ratio |D v|`` (to reject) and the ``(B,)`` evaluations spent.
+    """
+    t = _ACCEL_FD_STEP
+    zero = torch.zeros((), dtype=x.dtype, device=x.device)
+    x_fd = torch.where(solved[:, None], x + t * vel, x)
+    r_fd, _ = evaluate_residual(residual_fn, x_fd, r.shape[1])
+    jv = (jac @ vel[:, :, None])[:, :, 0]
+    rvv = (2.0 / t) * ((r_fd - r) / t - jv)
+    if mask is not None:
+        rvv = torch.where(mask, rvv, zero)
+    rhs = -(jac.transpose(1, 2) @ rvv[:, :, None])[:, :, 0]
+    if keep is not None:
+        rhs = rhs * keep
+    acc = torch.cholesky_solve(rhs[:, :, None], factor)[:, :, 0]
+    acc_ok = solved & torch.isfinite(acc).all(dim=1)
+    acc = torch.where(acc_ok[:, None], acc, zero)
+    dnorm = torch.sqrt(diag2)
+    too_curved = acc_ok & ((dnorm * acc).norm(dim=1) > opts.accel_ratio * (dnorm * vel).norm(dim=1))
+    return vel + 0.5 * acc, too_curved, solved.long()

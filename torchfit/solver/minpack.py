@@ -38,8 +38,9 @@ def minpack_baseline(
         x0: ``(B, P)`` start; results come back in its dtype and device (MINPACK runs in
             float64).
         options: ``ftol``, ``xtol``, ``gtol`` go to MINPACK as they are; ``maxfev`` is
-            ``max_nfev`` or, by default, ``max_iter * (P + 1)`` (each MINPACK iteration spends
-            ``P`` evaluations on the Jacobian and one on the trial point).
+            ``max_nfev`` (the argument), else ``options.max_nfev`` (the same budget the LM
+            solver then gets, counted the same way), else ``max_iter * (P + 1)`` (each MINPACK
+            iteration spends ``P`` evaluations on the Jacobian and one on the trial point).
         max_nfev: MINPACK's ``maxfev`` (residual evaluations, Jacobian columns included).
         epsfcn: MINPACK's ``epsfcn``: the forward-difference step is
             ``sqrt(max(epsfcn, eps)) * |x_j|`` (default: machine precision). Residuals that
@@ -60,7 +61,9 @@ def minpack_baseline(
     if not isinstance(x0, torch.Tensor) or x0.dim() != 2 or not x0.is_floating_point():
         raise SolverError("x0: expected a floating-point tensor of shape (B, P)")
     bsz, p = x0.shape
-    maxfev = int(max_nfev) if max_nfev is not None else opts.max_iter * (p + 1)
+    if max_nfev is None:
+        max_nfev = opts.max_nfev if opts.max_nfev is not None else opts.max_iter * (p + 1)
+    maxfev = int(max_nfev)
     x0_64 = x0.detach().to(torch.float64)
     with torch.no_grad():
         r0, _ = evaluate_residual(residual_fn, x0.detach())

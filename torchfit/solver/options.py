@@ -25,8 +25,9 @@ class LMOptions:
     """Options of :func:`torchfit.solver.levenberg_marquardt` (the same for every problem).
 
     Attributes:
-        max_iter: trial steps per problem (each costs one residual evaluation; a new Jacobian
-            is computed only after an accepted step). Status ``MAX_ITER`` when reached.
+        max_iter: trial steps per problem (each costs one residual evaluation, two with
+            ``geodesic_acceleration``; a new Jacobian is computed only after an accepted step).
+            Status ``MAX_ITER`` when reached.
         ftol: stop when both the actual and the predicted relative reduction of the cost are
             at most ``ftol`` (MINPACK info 1).
         xtol: stop when the scaled step ``|D h|`` is at most ``xtol * |D x|`` (MINPACK info 2).
@@ -44,6 +45,20 @@ class LMOptions:
         fold_batch: evaluate forward-mode and finite-difference Jacobians with one call of the
             residual function on ``K`` stacked copies of the batch, ``(K*B, P)`` (row ``i``
             belongs to problem ``i % B``). ``False`` makes ``K`` calls on ``(B, P)`` instead.
+            Forward mode makes ``P`` calls on ``(B, P)`` anyway when one copy already holds
+            ``torchfit.solver.jacobians.FORWARD_UNFOLD_MIN_RESIDUALS`` residuals (``B * M``).
+        geodesic_acceleration: add Transtrum & Sethna's second-order correction to each step
+            (one more residual evaluation per trial step; see
+            :func:`~torchfit.solver.levenberg_marquardt`). Helps on narrow curved valleys and
+            against parameters running off to infinity.
+        accel_ratio: with ``geodesic_acceleration``, reject a trial step whose acceleration is
+            large against its velocity, ``|D a| > accel_ratio * |D v|`` (Transtrum & Sethna
+            suggest 0.75).
+        max_nfev: a budget of residual evaluations per problem, or ``None``. Counted as
+            MINPACK's ``lmdif`` counts its ``nfev``: every residual evaluation (trial points,
+            acceleration probes) plus, per Jacobian, one per free parameter (a parameter whose
+            bounds are not equal), which is what a forward-difference Jacobian costs. Status
+            ``MAX_ITER`` (MINPACK's info 5) when reached; checked after each iteration.
     """
 
     max_iter: int = 100
@@ -57,6 +72,9 @@ class LMOptions:
     max_bad_steps: int = 10
     step_bound: float | None = 100.0
     fold_batch: bool = True
+    geodesic_acceleration: bool = False
+    accel_ratio: float = 0.75
+    max_nfev: int | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.max_iter, bool) or not isinstance(self.max_iter, int):
@@ -94,3 +112,25 @@ class LMOptions:
             )
         if self.max_bad_steps < 1:
             raise SolverError(f"LMOptions.max_bad_steps: expected >= 1, got {self.max_bad_steps}")
+        if not isinstance(self.geodesic_acceleration, bool):
+            raise SolverError(
+                f"LMOptions.geodesic_acceleration: expected a bool, got "
+                f"{self.geodesic_acceleration!r}"
+            )
+        if (
+            isinstance(self.accel_ratio, bool)
+            or not isinstance(self.accel_ratio, (int, float))
+            or not math.isfinite(self.accel_ratio)
+            or self.accel_ratio <= 0
+        ):
+            raise SolverError(
+                f"LMOptions.accel_ratio: expected a finite number > 0, got {self.accel_ratio!r}"
+            )
+        if self.max_nfev is not None and (
+            isinstance(self.max_nfev, bool)
+            or not isinstance(self.max_nfev, int)
+            or self.max_nfev < 1
+        ):
+            raise SolverError(
+                f"LMOptions.max_nfev: expected None or an int >= 1, got {self.max_nfev!r}"
+            )

@@ -50,7 +50,7 @@ STATUS_MESSAGES: dict[LMStatus, str] = {
     "are at most ftol and the relative error between two consecutive iterates is at most xtol",
     LMStatus.GTOL: "the cosine of the angle between the residual and any column of the "
     "Jacobian is at most gtol in absolute value",
-    LMStatus.MAX_ITER: "number of iterations reached max_iter",
+    LMStatus.MAX_ITER: "number of iterations reached max_iter (or residual evaluations max_nfev)",
     LMStatus.FTOL_TOO_SMALL: "ftol is too small: no further reduction in the sum of squares "
     "is possible",
     LMStatus.XTOL_TOO_SMALL: "xtol is too small: no further improvement in the approximate "
@@ -74,7 +74,8 @@ class LMResult:
         cost: ``(B,)`` ``0.5 * |r(x)|²`` (masked residual entries count as zero).
         status: ``(B,)`` int64, values of :class:`LMStatus`.
         n_iter: ``(B,)`` int64, trial steps taken.
-        nfev: ``(B,)`` int64, residual evaluations (Jacobian evaluations not included).
+        nfev: ``(B,)`` int64, residual evaluations (Jacobian evaluations not included;
+            acceleration probes included).
         njev: ``(B,)`` int64, Jacobian evaluations.
         damping: ``(B,)`` final damping ``mu``.
     """
