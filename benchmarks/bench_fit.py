@@ -36,9 +36,9 @@ from torchfit.baseline import minpack_stage, rendered_residual  # noqa: E402
 from torchfit.body.model import BodyModel  # noqa: E402
 from torchfit.camera import stack_cameras  # noqa: E402
 from torchfit.config import StageConfig, load_config  # noqa: E402
-from torchfit.fitting import SilhouetteFit, person_data_from_masks  # noqa: E402
+from torchfit.fitting import SilhouetteFit  # noqa: E402
 from torchfit.io.dataset import load_dataset  # noqa: E402
-from torchfit.pipeline import run, segment_subject  # noqa: E402
+from torchfit.pipeline import person_data, run, segment_subject  # noqa: E402
 from torchfit.solver import LMOptions  # noqa: E402
 
 
@@ -52,12 +52,13 @@ def machine() -> str:
 
 def part1(config, subjects, max_iter: int, lm_factor: int = 4) -> None:
     model = BodyModel(config.model.template)
-    masks = torch.stack([segment_subject(s, config)[1] for s in subjects])
-    person = person_data_from_masks(
-        masks,
+    segmented = [segment_subject(s, config) for s in subjects]
+    person = person_data(
+        config,
+        torch.stack([m for _, m, _ in segmented]),
+        torch.stack([sh for _, _, sh in segmented]),
         stack_cameras([s.camera for s in subjects]),
-        config.segmentation.distance,
-        config.fit.contour_stride,
+        torch.float64,
     )
     fit = SilhouetteFit(model, person, config.fit, config.model)
     stage = StageConfig(name="scales_and_root", scales=["all"], joints=False, root=True)

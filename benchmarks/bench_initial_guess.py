@@ -31,10 +31,10 @@ from torchfit.body.model import BodyModel  # noqa: E402
 from torchfit.camera import stack_cameras  # noqa: E402
 from torchfit.config import load_config  # noqa: E402
 from torchfit.errors import TorchfitError  # noqa: E402
-from torchfit.fitting import SilhouetteFit, person_data_from_masks  # noqa: E402
+from torchfit.fitting import SilhouetteFit  # noqa: E402
 from torchfit.initial_guess import parts_start  # noqa: E402
 from torchfit.io.dataset import load_dataset  # noqa: E402
-from torchfit.pipeline import segment_subject  # noqa: E402
+from torchfit.pipeline import person_data, segment_subject  # noqa: E402
 
 KEYS = ("height", "arm_span", "lower_leg", "thigh", "upper_arm", "forearm", "shoulder_width")
 #: The first paper's Table 1 mean errors: a fit within all three found the right answer.
@@ -108,29 +108,26 @@ def main(argv: list[str] | None = None) -> int:
     seconds = {s: 0.0 for s in STARTS}
     size = config.fit.batch_size
     for b0 in range(0, len(subjects), size):
-        batch, masks, images, truth = [], [], [], []
+        batch, masks, shadows, images, truth = [], [], [], [], []
         for s in subjects[b0 : b0 + size]:
             if s.truth is None:
                 print(f"{s.name}: skipped (no truth.json)", file=sys.stderr)
                 continue
             try:
-                img, mask = segment_subject(s, config)
+                img, mask, shadow = segment_subject(s, config)
             except (TorchfitError, OSError) as exc:
                 print(f"{s.name}: skipped ({exc})", file=sys.stderr)
                 continue
             batch.append(s)
             masks.append(mask)
+            shadows.append(shadow)
             images.append(img)
             truth.append(s.truth)
         if not batch:
             continue
         masks_t = torch.stack(masks)
-        person = person_data_from_masks(
-            masks_t,
-            stack_cameras([s.camera for s in batch]),
-            config.segmentation.distance,
-            config.fit.contour_stride,
-            dtype,
+        person = person_data(
+            config, masks_t, torch.stack(shadows), stack_cameras([s.camera for s in batch]), dtype
         )
         fit = SilhouetteFit(model, person, config.fit, config.model)
         t0 = time.perf_counter()

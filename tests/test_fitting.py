@@ -17,6 +17,7 @@ from torchfit.body.measure import measure_model
 from torchfit.body.model import BodyModel
 from torchfit.camera import stack_cameras
 from torchfit.config import FitConfig, SegmentationConfig, StageConfig
+from torchfit.errors import ShapeError
 from torchfit.fitting import SilhouetteFit, person_data_from_masks, scale_selection
 from torchfit.io.dataset import load_subject
 from torchfit.io.images import load_frames
@@ -38,15 +39,20 @@ def subjects(tmp_path_factory, model):
     return [load_subject(root / "small"), load_subject(root / "tall")], truths
 
 
-def problem(model, subjects, fit_config=None):
+def segmented(subjects) -> torch.Tensor:
+    """(B, 6, H, W) silhouettes of the subjects."""
     cfg = SegmentationConfig(gamma=0.05)
     masks = []
     for s in subjects:
         background, _ = load_frames(s.background)
         images, _ = load_frames(s.poses)
         masks.append(segment(images, fit_background(background, cfg), cfg).masks[:, 0])
+    return torch.stack(masks)
+
+
+def problem(model, subjects, fit_config=None):
     cams = stack_cameras([s.camera for s in subjects])
-    person = person_data_from_masks(torch.stack(masks), cams)
+    person = person_data_from_masks(segmented(subjects), cams)
     return SilhouetteFit(model, person, fit_config or FitConfig())
 
 
@@ -141,3 +147,56 @@ def test_unknown_stage_scale_group_is_named(model, subjects):
 def test_truth_file_written(subjects):
     folder = subjects[0][1].folder
     assert json.loads((folder / "truth.json").read_text())["height_m"] > 1.6
+
+
+def _cut_feet(masks: torch.Tensor, fraction: float = 0.08) -> tuple[torch.Tensor, torch.Tensor]:
+    """Silhouettes (B, J, H, W) without the lowest ``fraction`` of each one's height, as when
+    the shadow test takes shoes for shadow; returns the cut masks and the removed pixels."""
+    rows = masks.any(dim=3)  # (B, J, H)
+    idx = torch.arange(masks.shape[2])
+    top = torch.where(rows, idx, masks.shape[2]).amin(dim=2)
+    bottom = torch.where(rows, idx, -1).amax(dim=2)
+    start = bottom - fraction * (bottom - top)
+    keep = idx[None, None, :, None] < start[:, :, None, None]
+    return masks & keep, masks & ~keep
+
+
+def test_uncertain_pixels_are_left_out_of_both_residual_terms(model, subjects):
+    tall, truth = subjects[0][1:], subjects[1][1]
+    masks = segmented(tall)
+    cams = stack_cameras([s.camera for s in tall])
+    full = SilhouetteFit(model, person_data_from_masks(masks, cams))
+    cut, removed = _cut_feet(masks)
+    assert int(removed.sum()) > 0
+    plain = SilhouetteFit(model, person_data_from_masks(cut, cams))
+    flagged = SilhouetteFit(model, person_data_from_masks(cut, cams, uncertain=removed))
+    # person contour pixels next to the cut do not count
+    for k in range(6):
+        assert int(flagged.person.valid[k].sum()) < int(plain.person.valid[k].sum())
+    x = full.initial_params()
+    x[0, : full.num_scale_params] = 1.06  # the truth: the template scaled by 1.06
+    cost = {
+        name: 0.5 * float((f.residual(x) ** 2).sum())
+        for name, f in (("full", full), ("plain", plain), ("flagged", flagged))
+    }
+    # at the truth, the cut silhouette costs much more than the whole one unless the cut
+    # pixels are uncertain (then the model's feet are not measured against the cut)
+    # (the template at 1.06 is not exactly the rendered body: the whole silhouettes cost ~100)
+    assert cost["flagged"] - cost["full"] < 0.5 * (cost["plain"] - cost["full"]), cost
+    # and a fit from the template start on the cut silhouettes recovers the height only when
+    # the cut is uncertain: otherwise the model stands back to lift its feet to the cut
+    errors = {}
+    for name, f in (("plain", plain), ("flagged", flagged)):
+        x, _ = f.solve_stage(f.initial_params(), StageConfig(name="all"), LMOptions(max_iter=25))
+        scales = model.expand_scales(x[:, : f.num_scale_params].reshape(1, -1, 3))
+        errors[name] = float(measure_model(model, scales)["height_m"][0]) / truth["height_m"] - 1
+    assert errors["plain"] > 0.01, errors  # the bias the flags are for: taller
+    assert abs(errors["flagged"]) < 0.5 * errors["plain"], errors
+
+
+def test_uncertain_must_match_the_masks(model, subjects):
+    masks = torch.zeros(1, 6, 20, 30, dtype=torch.bool)
+    masks[:, :, 5:15, 10:20] = True
+    cams = problem(model, subjects[0][:1]).person.camera
+    with pytest.raises(ShapeError, match=r"uncertain: expected the shape of masks"):
+        person_data_from_masks(masks, cams, uncertain=masks[:, :3])

@@ -42,8 +42,8 @@ def segmented(subjects):
     config = Config()
     found = load_dataset(subjects)
     pairs = [segment_subject(s, config) for s in found]
-    images = torch.stack([i for i, _ in pairs])
-    masks = torch.stack([m for _, m in pairs])
+    images = torch.stack([i for i, _, _ in pairs])
+    masks = torch.stack([m for _, m, _ in pairs])
     return found, images, masks
 
 

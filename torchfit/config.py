@@ -101,6 +101,10 @@ class SegmentationConfig:
     # height (cast shadows lie on the floor around the feet; grey clothing on a grey wall
     # passes the colour test too); 1 applies it everywhere
     shadow_band: float = 1.0
+    # keep as person the shadow-like pixels with person both above and below them in their
+    # image column (a grey shin between the knee and a dark shoe), which a cast shadow on the
+    # floor beside or in front of the feet never has
+    shadow_bridge: bool = False
     distance: Literal["chamfer", "euclidean"] = "chamfer"
     # run the per-pixel colour test through torch.compile (needs a C++ compiler on CPU; about a
     # minute to compile the first time, cached afterwards; several times faster per frame)
@@ -177,6 +181,11 @@ class FitConfig:
     samples_per_edge: int = 4  # model contour candidates per mesh edge
     contour_tolerance_px: float = 1.0  # a sample within this of the rendered contour is on it
     contour_stride: int = 1  # use every n-th person contour pixel in e_P
+    # treat the pixels the segmentation's shadow test removed as uncertain rather than as
+    # background: no e_P from person contour pixels within shadow_margin_px of them, no e_M
+    # from model contour points on them (has an effect with segmentation.shadow_test only)
+    ignore_shadow: bool = True
+    shadow_margin_px: int = 2
 
 
 @dataclass

@@ -31,7 +31,7 @@ from torchfit.body.model import BodyModel
 from torchfit.body.postures import POSTURES, facing_yaw, nominal_joint_angles
 from torchfit.camera import Camera, camera_centre, project_points
 from torchfit.config import FitConfig, ModelConfig, StageConfig
-from torchfit.errors import ConfigError, ModelError
+from torchfit.errors import ConfigError, ModelError, ShapeError
 from torchfit.model_contour import (
     ContourEndpoints,
     ContourSelection,
@@ -88,12 +88,17 @@ class PersonData:
         valid: 6 bool tensors (B, C_j).
         distance_maps: 6 tensors (B, H, W): D_P, pixels to the person's contour (finite).
         camera: B cameras.
+        uncertain: optional 6 bool tensors (B, H, W): pixels where the silhouette is not to be
+            trusted (those the segmentation's shadow test removed). A model contour point on
+            such a pixel does not count in e_M, and ``valid`` already excludes the person
+            contour pixels next to them (see :func:`person_data_from_masks`).
     """
 
     contours: list[torch.Tensor]
     valid: list[torch.Tensor]
     distance_maps: list[torch.Tensor]
     camera: Camera
+    uncertain: list[torch.Tensor] | None = None
 
     @property
     def batch_size(self) -> int:
@@ -227,6 +232,7 @@ class SilhouetteFit:
                 t=cam.t[idx],
                 image_size=cam.image_size,
             ),
+            None if p.uncertain is None else [u[idx] for u in p.uncertain],
         )
         return SilhouetteFit(self.model, person, self.cfg, self.model_cfg)
 
@@ -415,8 +421,21 @@ class SilhouetteFit:
         pix: dict[str, torch.Tensor],
     ) -> tuple[torch.Tensor, torch.Tensor]:
         e_p, points = self._terms(k, rows, ends, pix)
-        e_m = model_to_person(self._sample_rows(k, rows, points), sel.sample_valid)
+        valid = sel.sample_valid
+        if self.person.uncertain is not None:
+            valid = valid & ~self._uncertain_at(k, rows, points)
+        e_m = model_to_person(self._sample_rows(k, rows, points), valid)
         return e_p, e_m
+
+    def _uncertain_at(self, k: int, rows: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """(N, n) bool: the uncertain flag of pose index k at the pixel nearest each point (a
+        choice, like the contour's, made at each evaluation point)."""
+        flags = self.person.uncertain[k].to(points.device)  # (B, H, W)
+        h, w = flags.shape[-2:]
+        p = points.detach()
+        u = p[..., 0].round().clamp(0, w - 1).long()
+        v = p[..., 1].round().clamp(0, h - 1).long()
+        return flags[rows[:, None].expand_as(u), v, u]
 
     def pose_residual(
         self, full: torch.Tensor, j: int, rows: torch.Tensor, selection: ContourSelection
@@ -599,6 +618,8 @@ def person_data_from_masks(
     method: str = "chamfer",
     stride: int = 1,
     dtype: torch.dtype = torch.float64,
+    uncertain: torch.Tensor | None = None,
+    margin_px: int = 2,
 ) -> PersonData:
     """Person contours and distance maps from silhouettes.
 
@@ -607,6 +628,13 @@ def person_data_from_masks(
         camera: B cameras.
         method: distance transform, ``"chamfer"`` (the paper's 3-4) or ``"euclidean"``.
         stride: keep every ``stride``-th contour pixel.
+        uncertain: optional (B, J, H, W) bool, pixels where the silhouette is not to be
+            trusted (:attr:`torchfit.segmentation.SegmentationResult.shadow`): person contour
+            pixels within ``margin_px`` of one do not count in e_P, and model contour points
+            on one do not count in e_M. A silhouette cut short where a foot or shin looked
+            like its own shadow then neither pulls the model's feet up nor pushes the model
+            back (the floor contact would turn that into a taller body).
+        margin_px: see ``uncertain``.
 
     Returns:
         :class:`PersonData`; an empty silhouette gives an empty contour and a map of large
@@ -615,6 +643,17 @@ def person_data_from_masks(
     from torchfit.contours import mask_to_distance_map, trace_outer_contour
 
     b, n_pose, h, w = masks.shape
+    near = None
+    if uncertain is not None:
+        if uncertain.shape != masks.shape:
+            raise ShapeError(
+                f"uncertain: expected the shape of masks {tuple(masks.shape)}, "
+                f"got {tuple(uncertain.shape)}"
+            )
+        k_size = 2 * margin_px + 1
+        near = torch.nn.functional.max_pool2d(
+            uncertain.float(), k_size, stride=1, padding=margin_px
+        ).bool()
     contours, valid, maps = [], [], []
     for k in range(n_pose):
         traced = [trace_outer_contour(masks[i, k])[::stride] for i in range(b)]
@@ -624,8 +663,12 @@ def person_data_from_masks(
         for i, c in enumerate(traced):
             pts[i, : len(c)] = c.to(dtype)
             ok[i, : len(c)] = True
+            if near is not None and len(c):
+                c = c.long()
+                ok[i, : len(c)] &= ~near[i, k, c[:, 1], c[:, 0]]
         contours.append(pts)
         valid.append(ok)
         dmap = mask_to_distance_map(masks[:, k : k + 1], method)[:, 0].to(dtype)
         maps.append(torch.nan_to_num(dmap, posinf=float(h + w)))
-    return PersonData(contours, valid, maps, camera)
+    flags = None if uncertain is None else [uncertain[:, k] for k in range(n_pose)]
+    return PersonData(contours, valid, maps, camera, flags)

@@ -30,10 +30,10 @@ import torch
 from torchfit.body.measure import measure_model
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import POSTURES
-from torchfit.camera import stack_cameras
+from torchfit.camera import Camera, stack_cameras
 from torchfit.config import Config, save_config
 from torchfit.errors import DataError, SegmentationError, TorchfitError
-from torchfit.fitting import SilhouetteFit, person_data_from_masks
+from torchfit.fitting import PersonData, SilhouetteFit, person_data_from_masks
 from torchfit.io.dataset import Subject, load_dataset
 from torchfit.io.export import export_mesh, export_urdf, write_json
 from torchfit.io.images import load_frames
@@ -41,7 +41,7 @@ from torchfit.measurements import MEASUREMENT_KEYS
 from torchfit.render import draw_polyline, outer_outlines
 from torchfit.segmentation import fit_background, segment
 
-__all__ = ["SubjectResult", "run", "segment_subject", "fit_batch", "write_summary"]
+__all__ = ["SubjectResult", "run", "segment_subject", "person_data", "fit_batch", "write_summary"]
 
 log = logging.getLogger(__name__)
 
@@ -78,14 +78,18 @@ class _Prepared:
     subject: Subject
     images: torch.Tensor  # (6, 3, H, W) RGB in [0, 1]
     masks: torch.Tensor  # (6, H, W) bool
+    shadow: torch.Tensor  # (6, H, W) bool, pixels the shadow test removed
     seconds: float
 
 
-def segment_subject(subject: Subject, config: Config) -> tuple[torch.Tensor, torch.Tensor]:
+def segment_subject(
+    subject: Subject, config: Config
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Segment a subject's six posture images.
 
     Returns:
-        images (6, 3, H, W) in [0, 1] and silhouettes (6, H, W) bool.
+        images (6, 3, H, W) in [0, 1], silhouettes (6, H, W) bool and the pixels the shadow
+        test removed (6, H, W) bool (:attr:`torchfit.segmentation.SegmentationResult.shadow`).
 
     Raises:
         DataError: invalid subject folder; SegmentationError: no person in a posture image.
@@ -103,7 +107,28 @@ def segment_subject(subject: Subject, config: Config) -> tuple[torch.Tensor, tor
     ]
     if missing:
         raise SegmentationError(f"no person found in {', '.join(missing)}")
-    return images, seg.masks[:, 0]
+    return images, seg.masks[:, 0], seg.shadow[:, 0]
+
+
+def person_data(
+    config: Config,
+    masks: torch.Tensor,
+    shadow: torch.Tensor,
+    cameras: Camera,
+    dtype: torch.dtype,
+) -> PersonData:
+    """The person side of the fit from segmented postures (B, J, H, W), as ``config`` says
+    (distance transform, contour stride, shadow pixels as uncertain)."""
+    use_shadow = config.fit.ignore_shadow and config.segmentation.shadow_test
+    return person_data_from_masks(
+        masks,
+        cameras,
+        config.segmentation.distance,
+        config.fit.contour_stride,
+        dtype,
+        shadow if use_shadow else None,
+        config.fit.shadow_margin_px,
+    )
 
 
 def _overlay(image: np.ndarray, person: np.ndarray, model_mask: np.ndarray, label: str):
@@ -151,9 +176,8 @@ def fit_batch(
     used = [j - 1 for j in config.fit.poses]  # the fitted postures, in fit.poses order
     masks = torch.stack([p.masks[used] for p in prepared])
     cameras = stack_cameras([p.subject.camera for p in prepared])
-    person = person_data_from_masks(
-        masks, cameras, config.segmentation.distance, config.fit.contour_stride, model.dtype
-    )
+    shadow = torch.stack([p.shadow[used] for p in prepared])
+    person = person_data(config, masks, shadow, cameras, model.dtype)
     fit = SilhouetteFit(model, person, config.fit, config.model)
     starts = None
     if config.fit.initial_guess == "parts":
@@ -387,8 +411,10 @@ def run(
             for subject in todo[start : start + config.fit.batch_size]:
                 t0 = time.perf_counter()
                 try:
-                    images, masks = segment_subject(subject, config)
-                    prepared.append(_Prepared(subject, images, masks, time.perf_counter() - t0))
+                    images, masks, shadow = segment_subject(subject, config)
+                    prepared.append(
+                        _Prepared(subject, images, masks, shadow, time.perf_counter() - t0)
+                    )
                 except (TorchfitError, OSError) as exc:
                     log.error("%s: %s", subject.name, exc)
                     finish(SubjectResult(subject.name, "failed", str(exc)))

@@ -34,7 +34,11 @@ This is the segmentation of the first paper (section 4). Conventions:
   radians: darker, same colour direction. Colour alone cannot tell a shadow from grey
   clothing in front of a lighter grey wall (both are "darker, same direction"), so
   ``shadow_band`` limits the test to the lowest fraction of the foreground's vertical extent,
-  where a standing person's floor shadow lies; hence also off by default.
+  where a standing person's floor shadow lies; hence also off by default. A shin in trousers
+  of the floor's colour passes the test as well and cuts the feet off the silhouette;
+  ``shadow_bridge`` keeps as person every shadow-like pixel that has person (non-shadow
+  foreground) both above and below it in its image column, as a shin between the knee and a
+  shoe has and a shadow cast on the floor beside, behind or in front of the feet has not.
 - **Holes.** ``fill_holes`` fills background regions enclosed by the silhouette; with
   ``max_hole_area`` only those up to that fraction of the silhouette's area, so that a large
   enclosed gap (between the legs, closed below by a shadow or the feet) stays open.
@@ -340,6 +344,24 @@ def _lower_band(masks: torch.Tensor, fraction: float, open_kernel: int) -> torch
     return (idx >= start).expand_as(masks)
 
 
+def _bridged(person: torch.Tensor, open_kernel: int) -> torch.Tensor:
+    """``(B, 1, H, W)`` bool: pixels with the main ``person`` region somewhere above them in
+    their column and another person region (cut off from the main one) somewhere below.
+
+    ``person`` is opened by ``open_kernel`` first, so that speckles do not count. Feet still
+    joined to the body do not bridge anything: a shadow between a calf and its own foot (beside
+    the ankle) stays shadow.
+    """
+    solid = _binary_morphology(person, open_kernel, "opening") if open_kernel > 1 else person
+    host = solid.cpu().numpy().astype(np.uint8)
+    main = np.stack([_largest_region(m) for m in host.reshape(-1, *host.shape[-2:])])
+    main = torch.from_numpy(main.reshape(host.shape)).to(person.device)
+    cut_off = solid.to(torch.uint8) & (1 - main)
+    above = torch.cummax(main, dim=2).values.bool()
+    below = torch.cummax(cut_off.flip(2), dim=2).values.flip(2).bool()
+    return above & below & ~person
+
+
 def _largest_region(mask: np.ndarray) -> np.ndarray:
     """The largest 8-connected region of a ``(H, W)`` uint8 mask (all zero if none)."""
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
@@ -467,11 +489,17 @@ class SegmentationResult:
         masks: ``(B, 1, H, W)`` bool cleaned silhouettes.
         distance: ``(B, 1, H, W)`` Mahalanobis distance to the background.
         found: ``(B,)`` bool, ``False`` where no person region was left after clean-up.
+        shadow: ``(B, 1, H, W)`` bool, the pixels that differ from the background but that the
+            shadow test took for a cast shadow (all ``False`` without ``shadow_test``). Parts
+            of the person that look like a darker copy of the floor (grey trousers or shoes on
+            a grey or brown floor) end up here too: the fit can treat these pixels as
+            uncertain instead of as background (``fit.ignore_shadow``).
     """
 
     masks: torch.Tensor
     distance: torch.Tensor
     found: torch.Tensor
+    shadow: torch.Tensor | None = None
 
 
 def segment(
@@ -493,6 +521,7 @@ def segment(
     config = config or SegmentationConfig()
     distance = mahalanobis_distance(model, images, compiled=config.compile)
     raw = distance > config.threshold
+    removed = torch.zeros_like(raw)
     if config.shadow_test:
         if len(config.shadow_ratio) != 2:
             raise ConfigError(
@@ -507,6 +536,9 @@ def segment(
             )
         if config.shadow_band < 1.0:
             shadow = shadow & _lower_band(raw, config.shadow_band, config.open_kernel)
+        if config.shadow_bridge:
+            shadow = shadow & ~_bridged(raw & ~shadow, config.open_kernel)
+        removed = raw & shadow
         raw = raw & ~shadow
     masks = clean_mask(
         raw,
@@ -516,7 +548,7 @@ def segment(
         config.largest_region,
         config.max_hole_area,
     )
-    return SegmentationResult(masks, distance, masks.flatten(1).any(1))
+    return SegmentationResult(masks, distance, masks.flatten(1).any(1), removed)
 
 
 def cdnet_counts(pred: np.ndarray | torch.Tensor, labels: np.ndarray) -> dict[str, int]:
