@@ -131,11 +131,21 @@ def person_data(
     )
 
 
-def _overlay(image: np.ndarray, person: np.ndarray, model_mask: np.ndarray, label: str):
-    """RGB overlay: person contour magenta, model contour green, a label."""
+def _overlay(
+    image: np.ndarray,
+    person: np.ndarray,
+    model_mask: np.ndarray,
+    label: str,
+    uncertain: np.ndarray | None = None,
+):
+    """RGB overlay: uncertain pixels tinted yellow, person contour magenta, model contour
+    green, a label."""
     import cv2
 
     out = image.copy()
+    if uncertain is not None and uncertain.any():
+        tint = np.array([255, 220, 0], dtype=np.float32)
+        out[uncertain] = (0.5 * out[uncertain] + 0.5 * tint).astype(np.uint8)
     for c in outer_outlines(person):
         draw_polyline(out, c, (255, 0, 255), thickness=2)
     for c in outer_outlines(model_mask):
@@ -289,6 +299,7 @@ def fit_batch(
                     prep.masks[j - 1].numpy(),
                     selections[j].masks[i],
                     f"{prep.subject.name} pose{j} {POSTURES[j - 1].name}",
+                    prep.shadow[j - 1].numpy() if fit.person.uncertain is not None else None,
                 )
                 cv2.imwrite(str(folder / f"overlay_pose{j}.png"), overlay[:, :, ::-1])
                 if tb is not None:
