@@ -155,12 +155,13 @@ def main() -> int:
     parser.add_argument("--batch-sizes", default="1,4,16")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--skip-baseline", action="store_true")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    config = load_config(args.config)
+    config = load_config(args.config, args.set)
     subjects = [s for s in load_dataset(args.data) if s.ok]
-    print(f"# bench_fit on {args.data} ({machine()})")
+    print(f"# bench_fit on {args.data} ({machine()})" + "".join(f" --set {o}" for o in args.set))
     if not args.skip_baseline:
         part1(config, subjects[: args.baseline_subjects], args.baseline_max_iter)
     sizes = [int(b) for b in args.batch_sizes.split(",") if b]

@@ -12,12 +12,13 @@ warm-up run (first-call imports and allocations).
     python benchmarks/bench_solver.py --threads 1
     python benchmarks/bench_solver.py --threads 1 --keep-heap   # glibc malloc keeps its heap
 
-``--keep-heap`` runs every case (torchfit and scipy alike) with glibc's
-``MALLOC_MMAP_THRESHOLD_=16777216 MALLOC_TRIM_THRESHOLD_=67108864``: blocks up to 16 MiB come
-from the heap and the heap is not handed back to the kernel after each iteration. With the
-default settings, the time of the batched solver at B = 1024 is bimodal on a small machine,
-because its temporary tensors are mapped and unmapped (and faulted in again) on every
-Jacobian. A user gets the same effect with these variables, or with jemalloc / tcmalloc.
+``--keep-heap`` calls :func:`torchfit.solver.keep_heap` at the start of every case (torchfit
+and scipy alike): glibc's mmap threshold fixed at 16 MiB and its trim threshold at 64 MiB, so
+blocks up to 16 MiB come from the heap and the heap is not handed back to the kernel after each
+iteration. With the default settings, the time of the batched solver at B = 1024 is bimodal on
+a small machine, because its temporary tensors are mapped and unmapped (and faulted in again)
+on every Jacobian. The environment variables ``MALLOC_MMAP_THRESHOLD_=16777216
+MALLOC_TRIM_THRESHOLD_=67108864``, jemalloc or tcmalloc have the same effect.
 """
 
 from __future__ import annotations
@@ -40,10 +41,7 @@ from scipy.optimize import least_squares
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import nist_strd  # noqa: E402
 
-from torchfit.solver import LMOptions, levenberg_marquardt  # noqa: E402
-
-# glibc malloc settings for --keep-heap.
-KEEP_HEAP = {"MALLOC_MMAP_THRESHOLD_": "16777216", "MALLOC_TRIM_THRESHOLD_": "67108864"}
+from torchfit.solver import LMOptions, keep_heap, levenberg_marquardt  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "nist-strd"
 
@@ -67,6 +65,8 @@ def _starts(prob: nist_strd.NistProblem, batch: int, seed: int) -> torch.Tensor:
 
 
 def _run_case(args: argparse.Namespace) -> dict:
+    if args.keep_heap and not keep_heap():
+        raise SystemExit("--keep-heap: the C library is not glibc; nothing to set")
     if args.threads:
         torch.set_num_threads(args.threads)
     prob = nist_strd.load_problem(Path(args.data) / f"{args.problem}.dat")
@@ -148,10 +148,8 @@ def main() -> None:
         f"jacobian={args.jacobian}, torch threads={args.threads or 'default'}; "
         f"peak memory = ru_maxrss of a fresh process per case"
     )
-    env = dict(os.environ)
     if args.keep_heap:
-        env.update(KEEP_HEAP)
-        print("malloc: " + " ".join(f"{k}={v}" for k, v in KEEP_HEAP.items()))
+        print("malloc: torchfit.solver.keep_heap() in every case (mmap 16 MiB, trim 64 MiB)")
     header = (
         f"{'B':>6s} {'method':>9s} {'median s':>10s} {'problems/s':>11s} {'solved':>8s} "
         f"{'peak RSS MiB':>13s}"
@@ -187,8 +185,8 @@ def main() -> None:
                 str(args.seed),
                 "--data",
                 args.data,
-            ]
-            out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
+            ] + (["--keep-heap"] if args.keep_heap else [])
+            out = subprocess.run(cmd, capture_output=True, text=True, check=True)
             res = json.loads(out.stdout.strip().splitlines()[-1])
             rates[method] = batch / res["median_s"]
             print(

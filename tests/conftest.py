@@ -30,3 +30,11 @@ def shared_data() -> Path:
     if path is None:
         pytest.skip("../shared/data is not available (set TORCHFIT_SHARED to point at it)")
     return path
+
+
+@pytest.fixture(scope="session")
+def model():
+    """The ``mpeg4_full`` template body (stateless, so one instance serves every test)."""
+    from torchfit.body import BodyModel
+
+    return BodyModel("mpeg4_full")

@@ -14,7 +14,6 @@ from template_subjects import make_template_subject
 
 from torchfit.baseline import minpack_stage, rendered_residual
 from torchfit.body.measure import measure_model
-from torchfit.body.model import BodyModel
 from torchfit.camera import stack_cameras
 from torchfit.config import FitConfig, SegmentationConfig, StageConfig
 from torchfit.errors import ShapeError
@@ -23,11 +22,6 @@ from torchfit.io.dataset import load_subject
 from torchfit.io.images import load_frames
 from torchfit.segmentation import fit_background, segment
 from torchfit.solver import LMOptions
-
-
-@pytest.fixture(scope="module")
-def model():
-    return BodyModel("mpeg4_full")
 
 
 @pytest.fixture(scope="module")

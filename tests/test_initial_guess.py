@@ -10,7 +10,6 @@ import pytest
 import torch
 from template_subjects import make_template_subject
 
-from torchfit.body.model import BodyModel
 from torchfit.camera import stack_cameras
 from torchfit.config import Config, FitConfig
 from torchfit.errors import ConfigError
@@ -22,11 +21,6 @@ from torchfit.pipeline import segment_subject
 REPO = Path(__file__).resolve().parents[1]
 SCALES = (0.92, 1.1)
 ONE_STEP = "[{name: all, scales: [all], joints: true, root: true, max_iter: 1}]"
-
-
-@pytest.fixture(scope="module")
-def model():
-    return BodyModel("mpeg4_full")
 
 
 @pytest.fixture(scope="module")

@@ -55,6 +55,7 @@ class RunConfig:
     seed: int = 0
     resume: bool = True  # skip subjects whose outputs are complete
     num_threads: int | None = None  # torch CPU threads (None: torch's default)
+    keep_heap: bool = False  # glibc malloc keeps freed memory (torchfit.solver.keep_heap)
 
 
 @dataclass

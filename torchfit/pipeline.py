@@ -40,6 +40,7 @@ from torchfit.io.images import load_frames
 from torchfit.measurements import MEASUREMENT_KEYS
 from torchfit.render import draw_polyline, outer_outlines
 from torchfit.segmentation import fit_background, segment
+from torchfit.solver import keep_heap
 
 __all__ = ["SubjectResult", "run", "segment_subject", "person_data", "fit_batch", "write_summary"]
 
@@ -386,6 +387,8 @@ def run(
         raise DataError("data.root is not set: pass --data DIR or set data.root in the config")
     if config.run.num_threads:
         torch.set_num_threads(config.run.num_threads)
+    if config.run.keep_heap and not keep_heap():
+        log.warning("run.keep_heap: the C library is not glibc; the setting has no effect")
     run_dir.mkdir(parents=True, exist_ok=True)
     save_config(config, run_dir / "config.yaml")
     subjects = load_dataset(config.data.root, config.data.subjects)

@@ -12,11 +12,6 @@ from torchfit.io.export import export_mesh, export_urdf, write_json
 from torchfit.measurements import MEASUREMENT_KEYS
 
 
-@pytest.fixture(scope="module")
-def model():
-    return BodyModel("mpeg4_full")
-
-
 def test_template_measurements_match_the_mesh(model):
     ones = torch.ones(1, model.num_segments, 3, dtype=torch.float64)
     m = measure_model(model, ones)

@@ -6,14 +6,9 @@ import pytest
 import torch
 import torch.autograd.forward_ad as fwAD
 
-from torchfit.body.model import BodyModel, axis_angle_to_matrix
+from torchfit.body.model import axis_angle_to_matrix
 from torchfit.body.postures import POSTURES, nominal_joint_angles, pose_nominal
 from torchfit.errors import ModelError, ShapeError
-
-
-@pytest.fixture(scope="module")
-def model():
-    return BodyModel("mpeg4_full")
 
 
 def random_params(model, batch, seed=0):

@@ -294,3 +294,27 @@ def test_geodesic_acceleration_first_step_by_hand():
     res = levenberg_marquardt(fn, x0, strict)
     torch.testing.assert_close(res.x, x0)
     assert int(res.nfev[0]) == 2 and float(res.damping[0]) == 2 * opts.initial_damping
+
+
+def test_keep_heap_sets_glibc_thresholds_in_a_fresh_process():
+    # In a subprocess, so the test run keeps its own allocator settings. The solve after it
+    # must give the same answer as here: the setting changes memory reuse only.
+    from torchfit.solver import keep_heap
+
+    with pytest.raises(ValueError, match="mmap_threshold=0"):
+        keep_heap(mmap_threshold=0)
+    code = (
+        "import platform, torch; from torchfit.solver import keep_heap, levenberg_marquardt; "
+        "t = torch.linspace(0.0, 3.0, 12, dtype=torch.float64); "
+        "y = 2.0 * torch.exp(-1.3 * t) + 0.5; "
+        "f = lambda x: x[:, :1] * torch.exp(-x[:, 1:2] * t) + x[:, 2:3] - y; "
+        "ok = keep_heap(); "
+        "x = levenberg_marquardt(f, torch.tensor([[1.0, 1.0, 0.0]], dtype=torch.float64)).x; "
+        "print(ok, platform.libc_ver()[0] == 'glibc', *x[0].tolist())"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    ok, glibc, *x = out.stdout.split()
+    assert ok == glibc  # set exactly where the C library is glibc
+    x0 = torch.tensor([[1.0, 1.0, 0.0]], dtype=torch.float64)
+    expected = levenberg_marquardt(exp_residual, x0).x[0]
+    assert torch.equal(torch.tensor([float(v) for v in x], dtype=torch.float64), expected)

@@ -11,6 +11,7 @@ Example:
     >>> result.x, result.cost, result.status, result.message
 """
 
+from torchfit.solver.heap import keep_heap
 from torchfit.solver.jacobians import (
     jacobian_forward,
     jacobian_numeric,
@@ -30,6 +31,7 @@ __all__ = [
     "LMStatus",
     "STATUS_MESSAGES",
     "SolverError",
+    "keep_heap",
     "jacobian_forward",
     "jacobian_reverse",
     "jacobian_numeric",
