@@ -38,7 +38,7 @@ from torchfit.io.dataset import Subject, load_dataset
 from torchfit.io.export import export_mesh, export_urdf, write_json
 from torchfit.io.images import load_frames
 from torchfit.measurements import MEASUREMENT_KEYS
-from torchfit.render import draw_polyline, outer_outlines
+from torchfit.render import draw_label, draw_polyline, outer_outlines
 from torchfit.segmentation import fit_background, segment
 from torchfit.solver import keep_heap
 
@@ -141,7 +141,6 @@ def _overlay(
 ):
     """RGB overlay: uncertain pixels tinted yellow, person contour magenta, model contour
     green, a label."""
-    import cv2
 
     out = image.copy()
     if uncertain is not None and uncertain.any():
@@ -151,8 +150,7 @@ def _overlay(
         draw_polyline(out, c, (255, 0, 255), thickness=2)
     for c in outer_outlines(model_mask):
         draw_polyline(out, c, (0, 200, 0), thickness=2)
-    cv2.putText(out, label, (10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 3)
-    cv2.putText(out, label, (10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 0, 0), 1)
+    draw_label(out, label, (10, 28), 0.8)
     return out
 
 

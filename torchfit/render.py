@@ -92,6 +92,30 @@ def draw_polyline(
     return image
 
 
+def draw_label(
+    image: np.ndarray,
+    text: str,
+    origin: tuple[int, int],
+    scale: float,
+    ink: tuple[int, int, int] = (0, 0, 0),
+    box: tuple[int, int, int] = (255, 255, 255),
+) -> np.ndarray:
+    """Draw ``text`` (baseline at ``origin``) on a filled box in place and return the image.
+
+    A box rather than an outline drawn with a thicker stroke: OpenCV spaces the glyphs by the
+    stroke width, so a thick outline does not line up with thin text.
+    """
+    import cv2
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    (w, h), base = cv2.getTextSize(text, font, scale, 1)
+    pad = max(2, round(4 * scale))
+    x, y = origin
+    cv2.rectangle(image, (x - pad, y - h - pad), (x + w + pad, y + base), box, cv2.FILLED)
+    cv2.putText(image, text, (x, y), font, scale, ink, 1, cv2.LINE_AA)
+    return image
+
+
 def outer_outlines(mask: np.ndarray) -> list[np.ndarray]:
     """Outer contours of every region of a binary (H, W) mask, each (N, 2) ``(u, v)`` float64."""
     import cv2

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from torchfit.errors import DataError
+from torchfit.render import draw_label
 from torchfit.synth.postures import POSTURES
 
 __all__ = ["contact_sheet"]
@@ -52,8 +53,7 @@ def contact_sheet(
             h = round(img.shape[0] * thumb_width / img.shape[1])
             img = cv2.resize(img, (thumb_width, h), interpolation=cv2.INTER_AREA)
             text = f"{folder.name}: {label}"
-            cv2.putText(img, text, (5, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 3)
-            cv2.putText(img, text, (5, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1)
+            draw_label(img, text, (5, 16), 0.42)
             thumbs.append(img)
         while len(thumbs) < len(POSTURES) + int(stereo):
             thumbs.append(np.zeros_like(thumbs[0]))
