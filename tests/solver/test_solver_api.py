@@ -318,3 +318,33 @@ def test_keep_heap_sets_glibc_thresholds_in_a_fresh_process():
     x0 = torch.tensor([[1.0, 1.0, 0.0]], dtype=torch.float64)
     expected = levenberg_marquardt(exp_residual, x0).x[0]
     assert torch.equal(torch.tensor([float(v) for v in x], dtype=torch.float64), expected)
+
+
+def test_min_diag_damps_a_parameter_the_data_barely_sees():
+    # x1 barely moves the data term (its column is 1e-4 times x0's) and a barrier that is flat
+    # inside [-1, 1] holds it: a body joint the camera cannot see, held by its interval. With
+    # Marquardt's scaling alone its damping is ~0, the first trial steps are thousands of units
+    # long and rejected, and the solve ends falsely far from the answer (x0 = 2); a floor under
+    # diag(JᵀJ) damps it and the problem is solved.
+    def residual(x: torch.Tensor) -> torch.Tensor:
+        data = 3 * (x[:, 0] - 2 + 1e-4 * x[:, 1])
+        barrier = 100 * torch.relu(x[:, 1].abs() - 1)
+        return torch.stack([data, barrier, 0.1 * x[:, 0] - 0.2], dim=1)
+
+    x0 = torch.tensor([[0.5, 0.2]], dtype=torch.float64)
+    runs = {}
+    for min_diag in (1e-12, 1.0):
+        log = []
+        res = levenberg_marquardt(
+            residual,
+            x0,
+            LMOptions(max_iter=50, min_diag=min_diag),
+            callback=lambda it, log=log: log.append((float(it.step_norm[0]), bool(it.accepted[0]))),
+        )
+        runs[min_diag] = res, log
+    res, log = runs[1e-12]
+    assert log[0][0] > 1000 and not log[0][1]  # a huge first step, rejected
+    assert float(res.cost[0]) > 1.0 and abs(float(res.x[0, 0]) - 2) > 1  # stopped far off
+    res, log = runs[1.0]
+    assert log[0][1] and log[0][0] < 2  # a sensible first step, accepted
+    assert float(res.cost[0]) < 1e-20 and abs(float(res.x[0, 0]) - 2) < 1e-9
