@@ -1,12 +1,13 @@
 """Segmentation quality: F-measure on real footage and the cast-shadow comparison.
 
-    python benchmarks/eval_segmentation.py [--shared PATH]
+    python benchmarks/eval_segmentation.py [--shared PATH] [--config configs/benchmark.yaml ...]
 
 1. Real sequences (``shared/data/sbi2015-people``, read its README): precision, recall and
    F-measure (CDnet convention: 170 ignored, everything but 255 background; TP/FP/FN summed over
    the frames of a sequence) for the HSL model with the default config, the same without the
    largest-region step (these sequences often show two people, the paper assumes one), a
-   shadow-tolerant gamma = 0.05, and the RGB baseline.
+   shadow-tolerant gamma = 0.05, the RGB baseline, and the ``segmentation`` section of each
+   ``--config`` file (its background choice and frame count are the sequence's, as above).
 
    - HallAndMonitor: frames 0-3 show the empty corridor: ``background: frames`` with
      ``min_background_frames: 4`` (below the default 5, set explicitly), scored on the 29
@@ -33,7 +34,7 @@ from pathlib import Path
 import kornia
 import torch
 
-from torchfit.config import SegmentationConfig
+from torchfit.config import SegmentationConfig, load_config
 from torchfit.io import load_frames, read_mask
 from torchfit.segmentation import cdnet_counts, fit_background, precision_recall_f, segment
 
@@ -63,7 +64,7 @@ def score(
     return precision_recall_f(total)
 
 
-def real_sequences(root: Path) -> None:
+def real_sequences(root: Path, configs: dict[str, SegmentationConfig]) -> None:
     print("1. real footage (SBI 2015), precision / recall / F-measure")
     runs = []
     seq = root / "HallAndMonitor"
@@ -109,8 +110,11 @@ def real_sequences(root: Path) -> None:
     )
     for title, s, bg, idx, nm, fr, base in runs:
         print(f"   {title} ({len(idx)} frames scored, {bg.shape[0]} background frames)")
-        for label, extra in VARIANTS.items():
-            cfg = dataclasses.replace(SegmentationConfig(), **base, **extra)
+        variants = [
+            (label, dataclasses.replace(SegmentationConfig(), **base, **extra))
+            for label, extra in VARIANTS.items()
+        ] + [(label, dataclasses.replace(cfg, **base)) for label, cfg in configs.items()]
+        for label, cfg in variants:
             p, r, f = score(s, bg, [nm[i] for i in idx], fr[idx], cfg)
             print(f"      {label:32s} P {p:.3f}  R {r:.3f}  F {f:.3f}")
 
@@ -162,10 +166,18 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     default = Path(__file__).resolve().parents[2] / "shared" / "data"
     p.add_argument("--shared", type=Path, default=default, help="the shared/data folder")
+    p.add_argument(
+        "--config",
+        type=Path,
+        action="append",
+        default=[],
+        help="also score this run config's segmentation section (repeatable)",
+    )
     args = p.parse_args()
+    configs = {str(c): load_config(c).segmentation for c in args.config}
     sbi = args.shared / "sbi2015-people"
     if sbi.is_dir():
-        real_sequences(sbi)
+        real_sequences(sbi, configs)
     else:
         print(f"1. real footage skipped: {sbi} not found")
     synthetic_shadows()
