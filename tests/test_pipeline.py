@@ -96,3 +96,31 @@ def test_fit_cli_config_errors(tmp_path):
     proc = fit("--config", REPO / "configs/demo.yaml", "--data", tmp_path / "nothing")
     assert proc.returncode == 2
     assert "not found" in proc.stderr
+
+
+def test_measure_stereo_cli_says_when_no_subject_has_a_pair(dataset, tmp_path):
+    # the template subjects have no stereo/ folder: each is skipped, and the tool says so
+    # instead of reporting them as measured
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "tools" / "measure_stereo.py"),
+            "--config",
+            str(REPO / "configs" / "stereo.yaml"),
+            "--data",
+            str(dataset),
+            "--out",
+            str(tmp_path / "stereo"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=300,
+    )
+    assert out.returncode == 2, out.stderr
+    assert "0 of 3 subjects measured, 0 failed, 3 skipped" in out.stdout
+    assert "no subject has a stereo pair" in out.stderr
+    with open(tmp_path / "stereo" / "summary.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["status"] for r in rows] == ["skipped"] * 3
+    assert all("stereo/" in r["message"] for r in rows)

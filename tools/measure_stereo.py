@@ -127,9 +127,13 @@ def main(argv: list[str] | None = None) -> int:
                 writer.writerow(
                     {k: (f"{v:.2f}" if isinstance(v, float) else v) for k, v in r.items()}
                 )
-    print(
-        f"{len(rows) - failed} of {len(rows)} subjects measured, {failed} failed; results in {out}"
-    )
+    skipped = sum(r["status"] == "skipped" for r in rows)
+    measured = len(rows) - failed - skipped
+    note = f", {skipped} skipped (no usable stereo/ folder)" if skipped else ""
+    print(f"{measured} of {len(rows)} subjects measured, {failed} failed{note}; results in {out}")
+    if not measured and skipped:
+        print("error: no subject has a stereo pair to measure", file=sys.stderr)
+        return 2
     return 1 if failed else 0
 
 
