@@ -218,12 +218,13 @@ class PartsConfig:
     face_band: float = 0.45  # skin is learnt this fraction of the way from the neck to the top
     # Systematic cut-point -> joint-centre corrections (torchfit.parts.JointOffsets):
     # (down, out) in units of the 2-D trunk length, per joint; the median of label -> projected
-    # joint centre on synthetic dev subjects (seed 1000), never the test set.
-    offset_back: list[float] = field(default_factory=lambda: [-0.173, 0.0])
-    offset_neck: list[float] = field(default_factory=lambda: [0.016, 0.0])
-    offset_shoulder: list[float] = field(default_factory=lambda: [0.028, 0.059])
-    offset_elbow: list[float] = field(default_factory=lambda: [0.021, 0.029])
-    offset_wrist: list[float] = field(default_factory=lambda: [-0.013, 0.017])
+    # joint centre on the synthetic development subjects (seed 1000), never the test set:
+    # `python benchmarks/calibrate_parts.py --data <dev set>` with configs/stereo.yaml.
+    offset_back: list[float] = field(default_factory=lambda: [-0.184, 0.0])
+    offset_neck: list[float] = field(default_factory=lambda: [0.060, 0.0])
+    offset_shoulder: list[float] = field(default_factory=lambda: [0.049, 0.058])
+    offset_elbow: list[float] = field(default_factory=lambda: [0.014, 0.028])
+    offset_wrist: list[float] = field(default_factory=lambda: [-0.009, 0.017])
     # Stereo correspondence: refine each joint's right-view pixel by matching the two
     # silhouettes along the epipolar line around its outline anchors (false: the paper's
     # independent labelling of both views).
