@@ -34,14 +34,19 @@ def dataset(tmp_path_factory):
     return root
 
 
-def fit(*args, cwd=REPO):
+def tool(script: str, *args, cwd=REPO):
+    """Run ``tools/<script>`` with ``args`` in a fresh process."""
     return subprocess.run(
-        [sys.executable, str(REPO / "tools" / "fit.py"), *map(str, args)],
+        [sys.executable, str(REPO / "tools" / script), *map(str, args)],
         capture_output=True,
         text=True,
         cwd=cwd,
         timeout=300,
     )
+
+
+def fit(*args, cwd=REPO):
+    return tool("fit.py", *args, cwd=cwd)
 
 
 def test_fit_cli_writes_outputs_and_survives_a_bad_subject(dataset, tmp_path):
@@ -101,21 +106,10 @@ def test_fit_cli_config_errors(tmp_path):
 def test_measure_stereo_cli_says_when_no_subject_has_a_pair(dataset, tmp_path):
     # the template subjects have no stereo/ folder: each is skipped, and the tool says so
     # instead of reporting them as measured
-    out = subprocess.run(
-        [
-            sys.executable,
-            str(REPO / "tools" / "measure_stereo.py"),
-            "--config",
-            str(REPO / "configs" / "stereo.yaml"),
-            "--data",
-            str(dataset),
-            "--out",
-            str(tmp_path / "stereo"),
-        ],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        timeout=300,
+    out = tool(
+        "measure_stereo.py",
+        *("--config", REPO / "configs" / "stereo.yaml"),
+        *("--data", dataset, "--out", tmp_path / "stereo"),
     )
     assert out.returncode == 2, out.stderr
     assert "0 of 3 subjects measured, 0 failed, 3 skipped" in out.stdout
