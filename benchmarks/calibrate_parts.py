@@ -24,13 +24,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
-from torchfit.camera import project_points
 from torchfit.config import load_config
 from torchfit.io.dataset import load_dataset
-from torchfit.parts import measure_stereo_pair
+from torchfit.parts import JointOffsets, measure_stereo_pair, project_joints
+from torchfit.parts.rules import joint_kind
 
 KINDS = ("back", "neck", "shoulder", "elbow", "wrist")
 
@@ -56,17 +55,11 @@ def main() -> int:
             continue
         used += 1
         for side, view in result.views.items():
-            camera = getattr(subject.stereo, side)
-            names = [n for n in view.labelling.raw_joints if n in truth]
-            points = torch.tensor([truth[n] for n in names], dtype=torch.float64)[None]
-            true_px = project_points(points, camera)[0].numpy()
-            down, outward, trunk = view.labelling.body_frame()
-            for name, target in zip(names, true_px, strict=True):
-                delta = (target - view.labelling.raw_joints[name]) / trunk
-                kind = name.split("_", 1)[-1]
-                side_vec = outward[name[0]] if "_" in name else None
-                out = float(delta @ side_vec) if side_vec is not None else 0.0
-                samples[kind].append((float(delta @ down), out))
+            marks = project_joints(truth, getattr(subject.stereo, side))
+            for name in sorted(view.labelling.raw_joints.keys() & marks.keys()):
+                samples[joint_kind(name)].append(
+                    JointOffsets.measure(view.labelling, name, marks[name])
+                )
     for line in skipped:
         print(f"skipped {line}")
     if not used:

@@ -22,25 +22,21 @@ import sys
 
 import cv2
 import numpy as np
-import torch
 from tqdm import tqdm
 
-from torchfit.camera import project_points
 from torchfit.cli import add_config_args, config_from_args, run_folder
 from torchfit.config import save_config
 from torchfit.errors import TorchfitError
 from torchfit.io.dataset import load_dataset
 from torchfit.io.export import write_json
-from torchfit.parts import STEREO_MEASUREMENT_KEYS, draw_labelling, measure_stereo_pair
+from torchfit.parts import (
+    STEREO_MEASUREMENT_KEYS,
+    draw_labelling,
+    measure_stereo_pair,
+    project_joints,
+)
 
 log = logging.getLogger("measure_stereo")
-
-
-def _truth_pixels(joints: dict, camera) -> dict[str, np.ndarray]:
-    names = list(joints)
-    pts = torch.tensor([joints[n] for n in names], dtype=torch.float64)[None]
-    uv = project_points(pts, camera)[0].numpy()
-    return dict(zip(names, uv, strict=True))
 
 
 def errors_row(result, truth: dict) -> dict[str, float]:
@@ -77,7 +73,6 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     save_config(config, out / "config.yaml")
     rows, error_rows = [], []
-    failed = 0
     for subject in tqdm(subjects, desc="stereo", unit="subject"):
         row = {"subject": subject.name}
         if subject.stereo is None:
@@ -91,13 +86,12 @@ def main(argv: list[str] | None = None) -> int:
         except TorchfitError as exc:  # an unreadable image: this subject only
             row.update(status="failed", failed_rule="data", message=str(exc))
             rows.append(row)
-            failed += 1
             continue
         truth = subject.truth or {}
         true_joints = truth.get("joints_world", {}).get("stereo")
         for side, view in result.views.items():
             cam = getattr(subject.stereo, side)
-            marks = _truth_pixels(true_joints, cam) if true_joints else None
+            marks = project_joints(true_joints, cam) if true_joints else None
             picture = draw_labelling(view.image, view.labelling, view.mask, marks)
             cv2.imwrite(str(folder / f"overlay_{side}.png"), picture[..., ::-1])
         row.update(
@@ -110,7 +104,6 @@ def main(argv: list[str] | None = None) -> int:
             if truth:
                 error_rows.append({"subject": subject.name, **errors_row(result, truth)})
         else:
-            failed += 1
             tqdm.write(f"FAILED {subject.name}: {result.message}")
         rows.append(row)
     fields = ["subject", "status", "failed_rule", "message", *STEREO_MEASUREMENT_KEYS]
@@ -127,6 +120,7 @@ def main(argv: list[str] | None = None) -> int:
                 writer.writerow(
                     {k: (f"{v:.2f}" if isinstance(v, float) else v) for k, v in r.items()}
                 )
+    failed = sum(r["status"] == "failed" for r in rows)
     skipped = sum(r["status"] == "skipped" for r in rows)
     measured = len(rows) - failed - skipped
     note = f", {skipped} skipped (no usable stereo/ folder)" if skipped else ""

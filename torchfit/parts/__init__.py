@@ -20,7 +20,13 @@ from torchfit.parts.curve import (
 from torchfit.parts.decompose import decompose_cactus, fill_holes, leg_gap_top, offsets_from_config
 from torchfit.parts.errors import PartsError
 from torchfit.parts.initial_guess import InitialGuess2D, PostureExtents, initial_guess_2d
-from torchfit.parts.measure import StereoResult, ViewResult, measure_stereo_pair, segment_view
+from torchfit.parts.measure import (
+    StereoResult,
+    ViewResult,
+    measure_stereo_pair,
+    project_joints,
+    segment_view,
+)
 from torchfit.parts.overlay import draw_labelling
 from torchfit.parts.rules import RULE_NAMES, Cut, JointOffsets, Labelling, label_cactus
 from torchfit.parts.stereo import (
@@ -61,6 +67,7 @@ __all__ = [
     "StereoResult",
     "segment_view",
     "measure_stereo_pair",
+    "project_joints",
     "draw_labelling",
     "InitialGuess2D",
     "PostureExtents",

@@ -127,10 +127,27 @@ class JointOffsets:
         points)."""
         down, outward, trunk = labelling.body_frame()
         for name, point in labelling.raw_joints.items():
-            kind = name.split("_", 1)[-1]
-            d, o = getattr(self, kind)
-            side = outward.get(name[0], np.zeros(2)) if "_" in name else np.zeros(2)
+            d, o = getattr(self, joint_kind(name))
+            side = _side(name, outward)
             labelling.joints[name] = point + trunk * (d * down + o * side)
+
+    @staticmethod
+    def measure(labelling: Labelling, name: str, target: np.ndarray) -> tuple[float, float]:
+        """The ``(down, out)`` offset, in units of ``T``, that would move joint ``name``'s cut
+        point onto the pixel ``target`` (the inverse of :meth:`apply` for one joint)."""
+        down, outward, trunk = labelling.body_frame()
+        delta = (np.asarray(target, dtype=float) - labelling.raw_joints[name]) / trunk
+        return float(delta @ down), float(delta @ _side(name, outward))
+
+
+def joint_kind(name: str) -> str:
+    """``"l_elbow"`` -> ``"elbow"``; ``"neck"`` -> ``"neck"`` (the :class:`JointOffsets` field)."""
+    return name.split("_", 1)[-1]
+
+
+def _side(name: str, outward: dict[str, np.ndarray]) -> np.ndarray:
+    """The outward unit vector of a left/right joint; zero for back and neck."""
+    return outward.get(name[0], np.zeros(2)) if "_" in name else np.zeros(2)
 
 
 @dataclass
