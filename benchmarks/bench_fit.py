@@ -7,7 +7,7 @@ batch throughput.
 Part 1 (same subject, same residual, same stopping rule, one run): one stage over every
 scale and the root poses of the six postures, from the template start, solved (a) by the
 batched LM with the structured autograd Jacobian and (b) by MINPACK lmdif with forward
-differences on the rendered-contour residual (torchfit.baseline). Both final costs are
+differences on the rendered-contour residual (torchfit.fit.baseline). Both final costs are
 evaluated with the rendered residual, so they compare one to one.
 
 Part 2: wall time of the whole configured fit (segmentation included) for B subjects in one
@@ -32,11 +32,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchfit.baseline import minpack_stage, rendered_residual  # noqa: E402
 from torchfit.body.model import BodyModel  # noqa: E402
 from torchfit.camera import stack_cameras  # noqa: E402
-from torchfit.config import StageConfig, load_config  # noqa: E402
-from torchfit.fitting import SilhouetteFit  # noqa: E402
+from torchfit.config import load_config  # noqa: E402
+from torchfit.fit import SilhouetteFit, StageOptions, solve_stage  # noqa: E402
+from torchfit.fit.baseline import minpack_stage, rendered_residual  # noqa: E402
 from torchfit.io.dataset import load_dataset  # noqa: E402
 from torchfit.pipeline import person_data, run, segment_subject  # noqa: E402
 from torchfit.solver import LMOptions  # noqa: E402
@@ -60,8 +60,10 @@ def part1(config, subjects, max_iter: int, lm_factor: int = 4) -> None:
         stack_cameras([s.camera for s in subjects]),
         torch.float64,
     )
-    fit = SilhouetteFit(model, person, config.fit, config.model)
-    stage = StageConfig(name="scales_and_root", scales=["all"], joints=False, root=True)
+    fit = SilhouetteFit(
+        model, person, config.fit, (config.model.scale_min, config.model.scale_max)
+    )
+    stage = StageOptions(name="scales_and_root", scales=["all"], joints=False, root=True)
     options = LMOptions(
         max_iter=max_iter, ftol=config.solver.ftol, xtol=config.solver.xtol, gtol=config.solver.gtol
     )
@@ -72,7 +74,7 @@ def part1(config, subjects, max_iter: int, lm_factor: int = 4) -> None:
     t_mp = time.perf_counter() - t
     cost_mp = 0.5 * (rendered_residual(fit, x_mp) ** 2).sum(1)
     # the LM with a longer budget; its trajectory gives the time to reach MINPACK's cost
-    free = fit.stage_indices(stage)
+    free = fit.stage_indices(stage.scales, stage.joints, stage.root)
     track: list[tuple[float, torch.Tensor]] = []
     t = time.perf_counter()
 
@@ -82,7 +84,7 @@ def part1(config, subjects, max_iter: int, lm_factor: int = 4) -> None:
     lm_options = LMOptions(
         max_iter=lm_factor * max_iter, ftol=options.ftol, xtol=options.xtol, gtol=options.gtol
     )
-    x_lm, res = fit.solve_stage(x0, stage, lm_options, callback=record)
+    x_lm, res = solve_stage(fit, x0, stage, lm_options, callback=record)
     t_lm = time.perf_counter() - t
     cost_lm = 0.5 * (rendered_residual(fit, x_lm) ** 2).sum(1)
     reach = [None] * len(subjects)

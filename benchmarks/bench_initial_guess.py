@@ -31,8 +31,8 @@ from torchfit.body.model import BodyModel  # noqa: E402
 from torchfit.camera import stack_cameras  # noqa: E402
 from torchfit.config import load_config  # noqa: E402
 from torchfit.errors import TorchfitError  # noqa: E402
-from torchfit.fitting import SilhouetteFit  # noqa: E402
-from torchfit.initial_guess import parts_start  # noqa: E402
+from torchfit.fit import SilhouetteFit, solve_stage  # noqa: E402
+from torchfit.fit.initial_guess import parts_start  # noqa: E402
 from torchfit.io.dataset import load_dataset  # noqa: E402
 from torchfit.pipeline import person_data, segment_subject  # noqa: E402
 
@@ -51,7 +51,7 @@ def machine() -> str:
 
 
 def errors_pct(model, x, fit, truth: list[dict]) -> list[dict[str, float]]:
-    groups = x[:, : fit.num_scale_params].reshape(-1, model.num_groups, 3)
+    groups = fit.layout.group_scales(x)
     m = measure_model(model, model.expand_scales(groups))
     return [
         {k: 100.0 * (float(m[f"{k}_m"][i]) / t[f"{k}_m"] - 1.0) for k in KEYS}
@@ -74,7 +74,7 @@ def fit_from(fit, x, config):
     for stage in config.fit.stages:
         options = config.solver.lm_options(stage.max_iter or config.solver.max_iter)
         n_before = [len(t) for t in trace]
-        x, res = fit.solve_stage(x, stage, options, callback=record)
+        x, res = solve_stage(fit, x, stage, options, callback=record)
         for i in range(fit.batch):
             iters[i].append(int(res.n_iter[i]))
             del trace[i][n_before[i] + int(res.n_iter[i]) :]  # iterations after it stopped
@@ -129,7 +129,9 @@ def main(argv: list[str] | None = None) -> int:
         person = person_data(
             config, masks_t, torch.stack(shadows), stack_cameras([s.camera for s in batch]), dtype
         )
-        fit = SilhouetteFit(model, person, config.fit, config.model)
+        fit = SilhouetteFit(
+        model, person, config.fit, (config.model.scale_min, config.model.scale_max)
+    )
         t0 = time.perf_counter()
         x_parts, info = parts_start(fit, masks_t, torch.stack(images), config.parts)
         guess_s = time.perf_counter() - t0

@@ -28,8 +28,9 @@ from tqdm import tqdm
 
 from torchfit.config import load_config
 from torchfit.io.dataset import load_dataset
-from torchfit.parts import JointOffsets, measure_stereo_pair, project_joints
+from torchfit.parts import JointOffsets, project_joints
 from torchfit.parts.rules import joint_kind
+from torchfit.pipeline.stereo import measure_stereo_pair
 
 KINDS = ("back", "neck", "shoulder", "elbow", "wrist")
 

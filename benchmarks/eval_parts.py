@@ -25,7 +25,8 @@ from tqdm import tqdm
 
 from torchfit.config import load_config
 from torchfit.io.dataset import load_dataset
-from torchfit.parts import STEREO_MEASUREMENT_KEYS, measure_stereo_pair
+from torchfit.parts import STEREO_MEASUREMENT_KEYS
+from torchfit.pipeline.stereo import measure_stereo_pair
 
 JOINTS = (
     "back", "neck", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist",

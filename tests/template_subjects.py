@@ -16,8 +16,8 @@ import torch
 from torchfit.body.measure import measure_model
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import POSTURES
-from torchfit.camera import save_camera
-from torchfit.preview import nominal_view, render_pose_preview
+from torchfit.io.camera import save_camera
+from torchfit.viz.preview import nominal_view, render_pose_preview
 
 SIZE = (360, 288)
 

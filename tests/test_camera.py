@@ -16,18 +16,20 @@ import torch
 from torchfit.camera import (
     Camera,
     camera_centre,
-    camera_from_dict,
-    camera_to_dict,
-    load_camera,
-    load_stereo_cameras,
     look_at,
     project_points,
-    save_camera,
-    save_stereo_cameras,
     stack_cameras,
     world_to_camera,
 )
 from torchfit.errors import CameraError, ShapeError
+from torchfit.io.camera import (
+    camera_from_dict,
+    camera_to_dict,
+    load_camera,
+    load_stereo_cameras,
+    save_camera,
+    save_stereo_cameras,
+)
 
 REFERENCE = Path(__file__).resolve().parent / "data" / "camera_reference.npz"
 

@@ -35,7 +35,7 @@ def test_stage_list(tmp_path):
     path = write(tmp_path, "fit:\n  stages:\n    - {name: a, scales: [legs]}\n    - {name: b}\n")
     cfg = load_config(path)
     assert [s.name for s in cfg.fit.stages] == ["a", "b"]
-    assert cfg.fit.stages[0].scales == ["legs"]
+    assert cfg.fit.stages[0].scales == ("legs",)
 
 
 @pytest.mark.parametrize(

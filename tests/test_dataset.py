@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchfit.camera import Camera, look_at, save_camera, save_stereo_cameras
+from torchfit.camera import Camera, look_at
 from torchfit.errors import DataError
+from torchfit.io.camera import save_camera, save_stereo_cameras
 from torchfit.io.dataset import load_dataset, load_subject, validate_subject, validate_truth
 
 

@@ -12,12 +12,18 @@ import pytest
 import torch
 from template_subjects import make_template_subject
 
-from torchfit.baseline import minpack_stage, rendered_residual
 from torchfit.body.measure import measure_model
 from torchfit.camera import stack_cameras
-from torchfit.config import FitConfig, SegmentationConfig, StageConfig
+from torchfit.config import SegmentationConfig
 from torchfit.errors import ShapeError
-from torchfit.fitting import SilhouetteFit, person_data_from_masks, scale_selection
+from torchfit.fit import (
+    FitOptions,
+    SilhouetteFit,
+    StageOptions,
+    person_data_from_masks,
+    solve_stage,
+)
+from torchfit.fit.baseline import minpack_stage, rendered_residual
 from torchfit.io.dataset import load_subject
 from torchfit.io.images import load_frames
 from torchfit.segmentation import fit_background, segment
@@ -47,13 +53,13 @@ def segmented(subjects) -> torch.Tensor:
 def problem(model, subjects, fit_config=None):
     cams = stack_cameras([s.camera for s in subjects])
     person = person_data_from_masks(segmented(subjects), cams)
-    return SilhouetteFit(model, person, fit_config or FitConfig())
+    return SilhouetteFit(model, person, fit_config or FitOptions())
 
 
 def test_autograd_residual_matches_the_rendered_contour_residual(model, subjects):
     fit = problem(model, subjects[0][:1])
     x = fit.initial_params()
-    x[0, : fit.num_scale_params] = 1.02  # a little off the truth, so distances are not all 0
+    x[0, : fit.layout.num_scale_params] = 1.02  # a little off the truth, so distances are not all 0
     ours, rendered = fit.residual(x), rendered_residual(fit, x)
     offset = 0
     for k in range(len(fit.poses)):
@@ -90,12 +96,12 @@ def test_autograd_jacobian_matches_central_differences(model, subjects):
 
 def test_batch_equals_each_subject_alone(model, subjects):
     fit = problem(model, subjects[0])
-    stage = StageConfig(name="s", scales=["legs"], joints=False, root=True)
+    stage = StageOptions(name="s", scales=["legs"], joints=False, root=True)
     options = LMOptions(max_iter=3)
-    x_batch, _ = fit.solve_stage(fit.initial_params(), stage, options)
+    x_batch, _ = solve_stage(fit, fit.initial_params(), stage, options)
     for i in range(2):
         one = fit.subset([i])
-        x_one, _ = one.solve_stage(one.initial_params(), stage, options)
+        x_one, _ = solve_stage(one, one.initial_params(), stage, options)
         torch.testing.assert_close(x_batch[i : i + 1], x_one, rtol=1e-8, atol=1e-10)
 
 
@@ -104,9 +110,9 @@ def test_fit_recovers_the_scales_of_a_known_body(model, subjects):
     fit = problem(model, [tall])
     x = fit.initial_params()
     start_cost = 0.5 * float((fit.residual(x) ** 2).sum())
-    x, result = fit.solve_stage(x, StageConfig(name="all"), LMOptions(max_iter=25))
+    x, result = solve_stage(fit, x, StageOptions(name="all"), LMOptions(max_iter=25))
     assert float(result.cost[0]) < 0.3 * start_cost
-    scales = model.expand_scales(x[:, : fit.num_scale_params].reshape(1, -1, 3))
+    scales = model.expand_scales(x[:, : fit.layout.num_scale_params].reshape(1, -1, 3))
     fitted = measure_model(model, scales)
     # at 360x288 one pixel is about 5 mm on the body: 1 % of the lower leg
     for key, bound in (("height_m", 0.02), ("arm_span_m", 0.02), ("lower_leg_m", 0.03)):
@@ -118,10 +124,10 @@ def test_fit_recovers_the_scales_of_a_known_body(model, subjects):
 
 def test_minpack_baseline_reaches_a_comparable_cost(model, subjects):
     fit = problem(model, subjects[0][1:])
-    stage = StageConfig(name="legs", scales=["legs"], joints=False, root=False)
-    assert len(scale_selection(model, ["legs"])) == 2
+    stage = StageOptions(name="legs", scales=["legs"], joints=False, root=False)
+    assert len(fit.layout.scale_indices(["legs"])) == 2
     x0 = fit.initial_params()
-    x_ours, ours = fit.solve_stage(x0, stage, LMOptions(max_iter=15))
+    x_ours, ours = solve_stage(fit, x0, stage, LMOptions(max_iter=15))
     x_base, base = minpack_stage(fit, x0, stage, LMOptions(max_iter=15))
     start = 0.5 * float((rendered_residual(fit, x0) ** 2).sum())
     cost_ours = 0.5 * float((rendered_residual(fit, x_ours) ** 2).sum())
@@ -133,9 +139,9 @@ def test_minpack_baseline_reaches_a_comparable_cost(model, subjects):
 def test_unknown_stage_scale_group_is_named(model, subjects):
     fit = problem(model, subjects[0][:1])
     with pytest.raises(ValueError, match="unknown scale group 'tail'"):
-        fit.stage_indices(StageConfig(name="bad", scales=["tail"]))
+        fit.stage_indices(["tail"], True, True)
     with pytest.raises(ValueError, match="free_joints.pose2: unknown joint DOFs"):
-        problem(model, subjects[0][:1], FitConfig(free_joints={"pose2": ["l_wing_flap"]}))
+        problem(model, subjects[0][:1], FitOptions(free_joints={"pose2": ["l_wing_flap"]}))
 
 
 def test_truth_file_written(subjects):
@@ -168,7 +174,7 @@ def test_uncertain_pixels_are_left_out_of_both_residual_terms(model, subjects):
     for k in range(6):
         assert int(flagged.person.valid[k].sum()) < int(plain.person.valid[k].sum())
     x = full.initial_params()
-    x[0, : full.num_scale_params] = 1.06  # the truth: the template scaled by 1.06
+    x[0, : full.layout.num_scale_params] = 1.06  # the truth: the template scaled by 1.06
     cost = {
         name: 0.5 * float((f.residual(x) ** 2).sum())
         for name, f in (("full", full), ("plain", plain), ("flagged", flagged))
@@ -181,8 +187,8 @@ def test_uncertain_pixels_are_left_out_of_both_residual_terms(model, subjects):
     # the cut is uncertain: otherwise the model stands back to lift its feet to the cut
     errors = {}
     for name, f in (("plain", plain), ("flagged", flagged)):
-        x, _ = f.solve_stage(f.initial_params(), StageConfig(name="all"), LMOptions(max_iter=25))
-        scales = model.expand_scales(x[:, : f.num_scale_params].reshape(1, -1, 3))
+        x, _ = solve_stage(f, f.initial_params(), StageOptions(name="all"), LMOptions(max_iter=25))
+        scales = model.expand_scales(x[:, : f.layout.num_scale_params].reshape(1, -1, 3))
         errors[name] = float(measure_model(model, scales)["height_m"][0]) / truth["height_m"] - 1
     assert errors["plain"] > 0.01, errors  # the bias the flags are for: taller
     assert abs(errors["flagged"]) < 0.5 * errors["plain"], errors

@@ -11,10 +11,10 @@ import torch
 from template_subjects import make_template_subject
 
 from torchfit.camera import stack_cameras
-from torchfit.config import Config, FitConfig
+from torchfit.config import Config
 from torchfit.errors import ConfigError
-from torchfit.fitting import SilhouetteFit, person_data_from_masks
-from torchfit.initial_guess import arm_ratios, parts_start
+from torchfit.fit import FitOptions, SilhouetteFit, person_data_from_masks
+from torchfit.fit.initial_guess import arm_ratios, parts_start
 from torchfit.io.dataset import load_dataset
 from torchfit.pipeline import segment_subject
 
@@ -43,7 +43,7 @@ def segmented(subjects):
 
 def _fit(model, found, masks, fit_config=None):
     person = person_data_from_masks(masks, stack_cameras([s.camera for s in found]))
-    return SilhouetteFit(model, person, fit_config or FitConfig(), Config().model)
+    return SilhouetteFit(model, person, fit_config or FitOptions())
 
 
 def test_parts_start_recovers_scale_root_and_upper_arm(model, segmented):
@@ -53,19 +53,19 @@ def test_parts_start_recovers_scale_root_and_upper_arm(model, segmented):
     # wrists to find and the forearm keeps the overall scale
     x, info = parts_start(fit, masks)
     assert torch.all(x >= fit.lower) and torch.all(x <= fit.upper)
-    upper = fit.names.index("scale:upperarm:z")
+    upper = fit.layout.names.index("scale:upperarm:z")
     for i, scale in enumerate(SCALES):
         assert info[i].source == "parts", info[i]
         assert info[i].scale == pytest.approx(scale, rel=0.015)
         # every segment starts at the overall scale, the upper arm at its own estimate
-        others = [k for k in range(fit.num_scale_params) if k != upper]
+        others = [k for k in range(fit.layout.num_scale_params) if k != upper]
         assert torch.allclose(x[i, others], torch.tensor(info[i].scale, dtype=x.dtype))
         assert info[i].upperarm == pytest.approx(scale, rel=0.04)
         assert float(x[i, upper]) == pytest.approx(info[i].upperarm)
         assert info[i].forearm is None
         # the subjects stand on the mark in every posture
         for j in fit.poses:
-            tx = fit.names.index(f"pose{j}:tx")
+            tx = fit.layout.names.index(f"pose{j}:tx")
             assert float(x[i, tx].abs()) < 0.02 and float(x[i, tx + 1].abs()) < 0.02, j
 
 
@@ -109,7 +109,7 @@ def test_parts_start_falls_back_and_says_why(model, segmented):
 
 def test_parts_start_needs_postures_1_and_5(model, segmented):
     found, _, masks = segmented
-    fit = _fit(model, found, masks[:, :3], FitConfig(poses=[1, 2, 3]))
+    fit = _fit(model, found, masks[:, :3], FitOptions(poses=[1, 2, 3]))
     with pytest.raises(ConfigError, match="posture 5"):
         parts_start(fit, masks[:, :3])
 

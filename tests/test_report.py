@@ -1,4 +1,4 @@
-"""torchfit.report and tools/benchmark.py --results on tiny fake run folders (no anny, no fit).
+"""torchfit.eval.report and tools/benchmark.py --results on tiny fake run folders (no anny, no fit).
 
 Each test writes real files: a data folder of subjects holding only truth.json, and a run
 folder laid out as torchfit.pipeline writes it (summary.csv, <subject>/measurements.json).
@@ -17,8 +17,7 @@ import pytest
 import yaml
 
 from torchfit.errors import DataError
-from torchfit.measurements import MEASUREMENT_KEYS
-from torchfit.report import (
+from torchfit.eval.report import (
     PAPER_TABLE1_PCT,
     REPORT_KEYS,
     SubjectOutcome,
@@ -33,6 +32,7 @@ from torchfit.report import (
     write_csv,
     write_report,
 )
+from torchfit.measurements import MEASUREMENT_KEYS
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -31,10 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import yaml  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from torchfit.cli import add_config_args, config_from_args, run_folder  # noqa: E402
+from torchfit.config.cli import add_config_args, config_from_args, run_folder  # noqa: E402
 from torchfit.errors import DataError, TorchfitError  # noqa: E402
-from torchfit.io.dataset import load_dataset  # noqa: E402
-from torchfit.report import (  # noqa: E402
+from torchfit.eval.report import (  # noqa: E402
     LABELS,
     REPORT_KEYS,
     TEMPLATE,
@@ -45,6 +44,7 @@ from torchfit.report import (  # noqa: E402
     summarize,
     write_report,
 )
+from torchfit.io.dataset import load_dataset  # noqa: E402
 
 
 def _progress(arg: object) -> tqdm:
@@ -135,9 +135,12 @@ def _settings(run_dir: Path) -> dict[str, str]:
     try:
         saved = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
         solver, model = saved.get("solver", {}), saved.get("model", {})
+        method = (saved.get("fit") or {}).get("method")
     except (OSError, yaml.YAMLError, AttributeError):
         return {}
     keys = {"template": model.get("template"), "jacobian": solver.get("jacobian")}
+    if method not in (None, "autograd_lm"):  # the baseline's runs say so
+        keys["method"] = method
     return {f"config {k}": str(v) for k, v in keys.items() if v is not None}
 
 

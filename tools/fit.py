@@ -3,8 +3,8 @@
     python tools/fit.py --config configs/demo.yaml [--data DIR] [--out DIR] [--set key=value ...]
 
 Segments the six posture images of every subject, fits the template body (batched
-Levenberg-Marquardt, autograd Jacobian; ``--set solver.jacobian=numeric`` runs the paper's
-rendered-contour MINPACK baseline instead) and writes runs/<run.name>/ (or --out):
+Levenberg-Marquardt, autograd Jacobian; ``--set fit.method=minpack_rendered`` runs the
+paper's rendered-contour MINPACK baseline instead) and writes runs/<run.name>/ (or --out):
 config.yaml, summary.csv, tb/ and per subject measurements.json, params.json,
 model.urdf + meshes/, model.glb and overlay_pose1..6.png. A rerun skips finished subjects.
 """
@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tqdm import tqdm  # noqa: E402
 
-from torchfit.cli import add_config_args, config_from_args, run_folder  # noqa: E402
+from torchfit.config.cli import add_config_args, config_from_args, run_folder  # noqa: E402
 from torchfit.errors import TorchfitError  # noqa: E402
 
 

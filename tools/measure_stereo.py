@@ -24,17 +24,14 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from torchfit.cli import add_config_args, config_from_args, run_folder
 from torchfit.config import save_config
+from torchfit.config.cli import add_config_args, config_from_args, run_folder
 from torchfit.errors import TorchfitError
 from torchfit.io.dataset import load_dataset
 from torchfit.io.export import write_json
-from torchfit.parts import (
-    STEREO_MEASUREMENT_KEYS,
-    draw_labelling,
-    measure_stereo_pair,
-    project_joints,
-)
+from torchfit.parts import STEREO_MEASUREMENT_KEYS, project_joints
+from torchfit.pipeline.stereo import measure_stereo_pair
+from torchfit.viz.parts import draw_labelling
 
 log = logging.getLogger("measure_stereo")
 

@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from torchfit.body.measure import measure_model  # noqa: E402
 from torchfit.body.model import BodyModel  # noqa: E402
 from torchfit.body.postures import POSTURES  # noqa: E402
-from torchfit.preview import nominal_view, render_pose_preview  # noqa: E402
+from torchfit.viz.preview import nominal_view, render_pose_preview  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -2,7 +2,7 @@
 
 Importing ``torchfit`` loads only the light core (errors, config); the stages live in their
 own modules (``torchfit.camera``, ``torchfit.body``, ``torchfit.segmentation``, …) and
-TensorBoard is imported only by ``torchfit.tb_logging``.
+TensorBoard is imported only by ``torchfit.pipeline.tensorboard``.
 """
 
 from torchfit.errors import (

@@ -7,8 +7,8 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from torchfit.errors import TorchfitError
+from torchfit.pipeline.tensorboard import TensorBoardCallback
 from torchfit.solver import LMOptions, levenberg_marquardt
-from torchfit.tb_logging import TensorBoardCallback
 
 T = torch.linspace(0.0, 3.0, 12, dtype=torch.float64)
 

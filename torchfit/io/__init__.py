@@ -1,5 +1,14 @@
-"""Input and output: images and masks, datasets, meshes and exports (trimesh lives here)."""
+"""Input and output: camera files, images and masks, datasets, meshes and exports (trimesh
+lives here)."""
 
+from torchfit.io.camera import (
+    camera_from_dict,
+    camera_to_dict,
+    load_camera,
+    load_stereo_cameras,
+    save_camera,
+    save_stereo_cameras,
+)
 from torchfit.io.dataset import StereoInfo, Subject, load_dataset, load_subject, validate_subject
 from torchfit.io.export import export_mesh, export_urdf, write_json
 from torchfit.io.images import (
@@ -13,6 +22,12 @@ from torchfit.io.images import (
 from torchfit.io.meshes import load_mesh_arrays, save_mesh
 
 __all__ = [
+    "load_camera",
+    "save_camera",
+    "camera_from_dict",
+    "camera_to_dict",
+    "load_stereo_cameras",
+    "save_stereo_cameras",
     "IMAGE_SUFFIXES",
     "list_images",
     "read_image",

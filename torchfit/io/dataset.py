@@ -16,8 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from torchfit.camera import Camera, load_camera, load_stereo_cameras
+from torchfit.camera import Camera
 from torchfit.errors import CameraError, DataError
+from torchfit.io.camera import load_camera, load_stereo_cameras
 from torchfit.measurements import JOINT_NAMES, MEASUREMENT_KEYS
 
 __all__ = [

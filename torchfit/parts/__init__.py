@@ -17,21 +17,15 @@ from torchfit.parts.curve import (
     curvature_extrema,
     fit_contour_spline,
 )
-from torchfit.parts.decompose import decompose_cactus, fill_holes, leg_gap_top, offsets_from_config
+from torchfit.parts.decompose import decompose_cactus, fill_holes, leg_gap_top, offsets_from_options
 from torchfit.parts.errors import PartsError
 from torchfit.parts.initial_guess import InitialGuess2D, PostureExtents, initial_guess_2d
-from torchfit.parts.measure import (
-    StereoResult,
-    ViewResult,
-    measure_stereo_pair,
-    project_joints,
-    segment_view,
-)
-from torchfit.parts.overlay import draw_labelling
+from torchfit.parts.options import PartsOptions
 from torchfit.parts.rules import RULE_NAMES, Cut, JointOffsets, Labelling, label_cactus
 from torchfit.parts.stereo import (
     STEREO_MEASUREMENT_KEYS,
     pixel_rays,
+    project_joints,
     stereo_measurements,
     triangulate_midpoint,
     undistort_pixels,
@@ -40,6 +34,7 @@ from torchfit.parts.wrists import Ellipse, SkinModel, find_wrists, hand_ellipse
 
 __all__ = [
     "PartsError",
+    "PartsOptions",
     "ContourSpline",
     "CurvatureExtremum",
     "fit_contour_spline",
@@ -56,19 +51,14 @@ __all__ = [
     "decompose_cactus",
     "fill_holes",
     "leg_gap_top",
-    "offsets_from_config",
+    "offsets_from_options",
     "undistort_pixels",
     "pixel_rays",
     "triangulate_midpoint",
     "stereo_measurements",
     "STEREO_MEASUREMENT_KEYS",
     "corresponding_joints",
-    "ViewResult",
-    "StereoResult",
-    "segment_view",
-    "measure_stereo_pair",
     "project_joints",
-    "draw_labelling",
     "InitialGuess2D",
     "PostureExtents",
     "initial_guess_2d",

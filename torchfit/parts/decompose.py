@@ -10,14 +10,14 @@ import cv2
 import numpy as np
 import torch
 
-from torchfit.config import PartsConfig
 from torchfit.contours import trace_outer_contour
 from torchfit.parts.curve import curvature_extrema, fit_contour_spline
 from torchfit.parts.errors import PartsError
+from torchfit.parts.options import PartsOptions
 from torchfit.parts.rules import JointOffsets, Labelling, RuleFailure, label_cactus
 from torchfit.parts.wrists import find_wrists
 
-__all__ = ["offsets_from_config", "fill_holes", "leg_gap_top", "decompose_cactus"]
+__all__ = ["offsets_from_options", "fill_holes", "leg_gap_top", "decompose_cactus"]
 
 
 def fill_holes(mask: np.ndarray) -> np.ndarray:
@@ -65,8 +65,8 @@ def leg_gap_top(mask: np.ndarray, filled: np.ndarray, min_area: float = 0.002) -
     return np.array([float(us.mean()), float(v) - 0.5])
 
 
-def offsets_from_config(config: PartsConfig) -> JointOffsets:
-    """The :class:`JointOffsets` of a :class:`~torchfit.config.PartsConfig`."""
+def offsets_from_options(config: PartsOptions) -> JointOffsets:
+    """The :class:`JointOffsets` of a :class:`~torchfit.parts.PartsOptions`."""
 
     def pair(name: str) -> tuple[float, float]:
         value = getattr(config, f"offset_{name}")
@@ -86,7 +86,7 @@ def _as_numpy(x: np.ndarray | torch.Tensor) -> np.ndarray:
 def decompose_cactus(
     mask: np.ndarray | torch.Tensor,
     image: np.ndarray | torch.Tensor | None = None,
-    config: PartsConfig | None = None,
+    config: PartsOptions | None = None,
 ) -> Labelling:
     """Label the joints of a person in posture 5 from its silhouette (and image, for wrists).
 
@@ -105,7 +105,7 @@ def decompose_cactus(
     Raises:
         PartsError: ``mask`` is not 2-D or ``image`` does not match it.
     """
-    config = config or PartsConfig()
+    config = config or PartsOptions()
     mask = _as_numpy(mask)
     if mask.ndim != 2:
         raise PartsError(f"mask: expected shape (H, W), got {mask.shape}")
@@ -129,7 +129,7 @@ def decompose_cactus(
         spline, config.min_curvature / height, max(config.min_separation * height, 1.0)
     )
     centre_u = float(np.nonzero(mask)[1].mean())
-    offsets = offsets_from_config(config)
+    offsets = offsets_from_options(config)
     result = label_cactus(spline, extrema, centre_u, config.hand_exclusion)
     if result.ok and config.wrists and image is not None:
         try:

@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from torchfit.config import PartsConfig
 from torchfit.parts.decompose import decompose_cactus, fill_holes
 from torchfit.parts.errors import PartsError
+from torchfit.parts.options import PartsOptions
 from torchfit.parts.rules import Labelling
 
 __all__ = ["PostureExtents", "InitialGuess2D", "posture_extents", "initial_guess_2d"]
@@ -99,7 +99,7 @@ def initial_guess_2d(
     mask_pose5: np.ndarray | torch.Tensor,
     mask_pose1: np.ndarray | torch.Tensor,
     image_pose5: np.ndarray | None = None,
-    config: PartsConfig | None = None,
+    config: PartsOptions | None = None,
 ) -> InitialGuess2D:
     """2-D joints of posture 5 and extents of posture 1, from one camera.
 

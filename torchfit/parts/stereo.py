@@ -12,13 +12,15 @@ rays. Undistortion inverts OpenCV's model by the same fixed-point iteration
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
-from torchfit.camera import Camera, camera_centre
+from torchfit.camera import Camera, camera_centre, project_points
 from torchfit.errors import check_shape
 from torchfit.parts.errors import PartsError
 
 __all__ = [
+    "project_joints",
     "undistort_pixels",
     "pixel_rays",
     "triangulate_midpoint",
@@ -161,3 +163,11 @@ def stereo_measurements(joints: dict[str, torch.Tensor]) -> dict[str, torch.Tens
         out["forearm_m"] = 0.5 * (dist("l_elbow", "l_wrist") + dist("r_elbow", "r_wrist"))
     out["virtual_leg_m"] = joints["back"][..., 2]
     return out
+
+
+def project_joints(joints: dict[str, list[float]], camera: Camera) -> dict[str, np.ndarray]:
+    """Pixels ``(2,)`` of named 3-D joints (metres, world frame) in one camera (B = 1), e.g. the
+    true ``joints_world["stereo"]`` of a synthetic subject in one of its views."""
+    names = list(joints)
+    points = torch.tensor([joints[n] for n in names], dtype=torch.float64)[None]
+    return dict(zip(names, project_points(points, camera)[0].numpy(), strict=True))

@@ -35,8 +35,9 @@ import cv2
 import numpy as np
 import torch
 
-from torchfit.camera import look_at, save_camera, save_stereo_cameras
+from torchfit.camera import look_at
 from torchfit.errors import ConfigError
+from torchfit.io.camera import save_camera, save_stereo_cameras
 from torchfit.measurements import JOINT_NAMES, measurements_from_joints
 from torchfit.synth.body import AnnyBody, Phenotype, PosedBody, load_anny
 from torchfit.synth.postures import POSTURES, STEREO_POSTURE, Posture, axis_angle, perturb

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 
 from torchfit.errors import DataError
-from torchfit.render import draw_label
 from torchfit.synth.postures import POSTURES
+from torchfit.viz.raster import draw_label
 
 __all__ = ["contact_sheet"]
 

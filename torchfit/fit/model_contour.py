@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from torchfit.errors import ShapeError, check_shape
-from torchfit.render import outer_outlines, render_silhouette
+from torchfit.viz.raster import outer_outlines, render_silhouette
 
 __all__ = [
     "EdgeSampler",
@@ -145,7 +145,7 @@ def select_contour(
     Returns:
         :class:`ContourSelection`. An image whose model has no contour sample in view gets no
         valid sample (the residual turns that into a large constant, see
-        :func:`torchfit.residuals.contour_residuals`).
+        :func:`torchfit.fit.residuals.contour_residuals`).
     """
     import cv2
     from scipy.spatial import cKDTree

@@ -27,8 +27,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from torchfit.config import PartsConfig
 from torchfit.errors import ConfigError
+from torchfit.parts.options import PartsOptions
 
 __all__ = ["StartInfo", "parts_start", "arm_ratios"]
 
@@ -63,17 +63,6 @@ class StartInfo:
         return asdict(self)
 
 
-def _root_columns(fit, j: int) -> tuple[int, int]:
-    sl = fit.pose_slices[j]
-    tx = sl.start + len(fit.pose_joints[j])
-    return tx, tx + 1
-
-
-def _scale_column(fit, group: str, axis: str) -> int | None:
-    name = f"scale:{group}:{axis}"
-    return fit.names.index(name) if name in fit.names else None
-
-
 def _centroid_u(mask: np.ndarray) -> float:
     cols = np.nonzero(mask)[1]
     return float(cols.mean()) if len(cols) else float("nan")
@@ -90,7 +79,7 @@ def _place(fit, x, j, rows, head_obs, foot_obs, centre_obs, tolerance):
         lost by the segmentation, a shadow kept), the ratio keeps the model's own foot and
         matches the head top alone.
     """
-    from torchfit.render import render_silhouette
+    from torchfit.viz.raster import render_silhouette
 
     verts, origins = fit.pose_world(x, j, rows)
     px = fit.project(verts, rows)
@@ -162,13 +151,13 @@ def parts_start(
     fit,
     masks: torch.Tensor,
     images: torch.Tensor | None = None,
-    parts_config: PartsConfig | None = None,
+    parts_config: PartsOptions | None = None,
     iterations: int = 4,
 ) -> tuple[torch.Tensor, list[StartInfo]]:
     """The automatic initial guess for a batch (see the module docstring).
 
     Args:
-        fit: the :class:`~torchfit.fitting.SilhouetteFit` of the batch; it must use postures
+        fit: the :class:`~torchfit.fit.SilhouetteFit` of the batch; it must use postures
             1 and 5.
         masks: (B, J, H, W) bool silhouettes, poses in ``fit.poses`` order.
         images: optional (B, J, 3, H, W) RGB in [0, 1] (the posture-5 image gives the wrists;
@@ -232,7 +221,7 @@ def parts_start(
         return torch.as_tensor(np.stack(vals), **kw), have
 
     # ---- 1-2: floor translation per posture, overall scale from posture 1
-    n_scale = fit.num_scale_params
+    n_scale = fit.layout.num_scale_params
     scale = torch.ones(b, **kw)
     lo, hi = fit.lower, fit.upper
     feet_lost: list[set[int]] = [set() for _ in range(b)]
@@ -245,7 +234,8 @@ def parts_start(
             )
             for i in torch.nonzero(have & ~feet_ok).flatten().tolist():
                 feet_lost[i].add(j)
-            ctx, cty = _root_columns(fit, j)
+            block = fit.layout.blocks[j]
+            ctx, cty = block.root_column("tx"), block.root_column("ty")
             for col, d in ((ctx, delta[:, 0]), (cty, delta[:, 1])):
                 new = (x[:, col] + d).clamp(lo[col], hi[col])
                 x[:, col] = torch.where(have, new, x[:, col])
@@ -279,7 +269,7 @@ def parts_start(
             note = "; ".join(notes) + ": kept the overall scale there"
             info[i].message = f"{info[i].message}; {note}" if info[i].message else note
         for group, r in ratio.items():
-            col = _scale_column(fit, group, "z")
+            col = fit.layout.scale_column(group, "z")
             if col is None:
                 continue
             value = float(torch.clamp(x[i, col] * r, lo[col], hi[col]))

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 from pathlib import Path
 
-from torchfit.config import Config, load_config
+from torchfit.config.loader import load_config
+from torchfit.config.schema import Config
 
 __all__ = ["add_config_args", "config_from_args", "run_folder"]
 
@@ -37,9 +39,11 @@ def config_from_args(args: argparse.Namespace, schema: type = Config):
     )
     config = load_config(args.config, list(args.overrides), schema)
     if args.data is not None:
-        config.data.root = str(args.data)
+        data = dataclasses.replace(config.data, root=str(args.data))
+        config = dataclasses.replace(config, data=data)
     if args.out is not None:
-        config.run.out = str(args.out)
+        run = dataclasses.replace(config.run, out=str(args.out))
+        config = dataclasses.replace(config, run=run)
     return config
 
 

@@ -12,17 +12,17 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from torchfit.camera import Camera, project_points
-from torchfit.config import PartsConfig, SegmentationConfig
+from torchfit.config.schema import SegmentationConfig
 from torchfit.io.dataset import StereoInfo
 from torchfit.io.images import load_frames, read_image
 from torchfit.parts.correspond import corresponding_joints
 from torchfit.parts.decompose import decompose_cactus, fill_holes
+from torchfit.parts.options import PartsOptions
 from torchfit.parts.rules import Labelling
 from torchfit.parts.stereo import stereo_measurements, triangulate_midpoint
 from torchfit.segmentation import fit_background, segment
 
-__all__ = ["ViewResult", "StereoResult", "segment_view", "measure_stereo_pair", "project_joints"]
+__all__ = ["ViewResult", "StereoResult", "segment_view", "measure_stereo_pair"]
 
 
 @dataclass
@@ -91,7 +91,7 @@ def segment_view(
 
 def measure_stereo_pair(
     stereo: StereoInfo,
-    parts: PartsConfig | None = None,
+    parts: PartsOptions | None = None,
     segmentation: SegmentationConfig | None = None,
 ) -> StereoResult:
     """Segment, label and triangulate one subject's posture-5 stereo pair.
@@ -108,7 +108,7 @@ def measure_stereo_pair(
     Raises:
         DataError: an image or background frame cannot be read.
     """
-    parts = parts or PartsConfig()
+    parts = parts or PartsOptions()
     segmentation = segmentation or SegmentationConfig()
     out = StereoResult()
     for side in ("left", "right"):
@@ -151,11 +151,3 @@ def measure_stereo_pair(
     out.measurements = {k: float(v[0]) for k, v in stereo_measurements(joints).items()}
     out.status = "ok"
     return out
-
-
-def project_joints(joints: dict[str, list[float]], camera: Camera) -> dict[str, np.ndarray]:
-    """Pixels ``(2,)`` of named 3-D joints (metres, world frame) in one camera (B = 1), e.g. the
-    true ``joints_world["stereo"]`` of a synthetic subject in one of its views."""
-    names = list(joints)
-    points = torch.tensor([joints[n] for n in names], dtype=torch.float64)[None]
-    return dict(zip(names, project_points(points, camera)[0].numpy(), strict=True))

@@ -9,18 +9,19 @@ contour (MINPACK's ``epsfcn``) and the problem is solved by MINPACK's ``lmdif``
 (``scipy.optimize.leastsq`` without ``Dfun``), one subject at a time.
 
 The residual vector has exactly the layout (and mask) of
-:meth:`torchfit.fitting.SilhouetteFit.residual`, so costs compare one to one.
+:meth:`torchfit.fit.SilhouetteFit.residual`, so costs compare one to one.
 """
 
 from __future__ import annotations
 
 import torch
 
-from torchfit.config import StageConfig
 from torchfit.contours import distance_map, trace_outer_contour
-from torchfit.fitting import SilhouetteFit
-from torchfit.render import render_silhouette
-from torchfit.residuals import NO_CONTOUR_PENALTY, person_to_model
+from torchfit.fit.problem import SilhouetteFit
+from torchfit.fit.residuals import NO_CONTOUR_PENALTY, person_to_model
+from torchfit.fit.stages import StageOptions
+from torchfit.solver import LMOptions
+from torchfit.viz.raster import render_silhouette
 
 __all__ = ["rendered_residual", "minpack_stage", "DEFAULT_EPSFCN"]
 
@@ -82,19 +83,19 @@ def rendered_residual(fit: SilhouetteFit, full: torch.Tensor) -> torch.Tensor:
 def minpack_stage(
     fit: SilhouetteFit,
     full: torch.Tensor,
-    stage: StageConfig,
-    options,
+    stage: StageOptions,
+    options: LMOptions,
     epsfcn: float = DEFAULT_EPSFCN,
 ):
     """One stage of the fit by the baseline: rendered residual, MINPACK lmdif per subject.
 
     Returns:
-        (full params (B, P), :class:`~torchfit.solver.LMResult`) like
-        :meth:`SilhouetteFit.solve_stage`.
+        (B, P) parameters after the stage and one :class:`~torchfit.solver.LMResult` (batch
+        of 1) per subject.
     """
     from torchfit.solver import minpack_baseline
 
-    free = fit.stage_indices(stage)
+    free = fit.stage_indices(list(stage.scales), stage.joints, stage.root)
     out = full.detach().clone()
     results = []
     for i in range(full.shape[0]):

@@ -8,7 +8,7 @@ import torch
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import Posture, pose_nominal
 from torchfit.camera import Camera, camera_centre, look_at, project_points
-from torchfit.render import draw_polyline, outer_outlines, render_shaded, render_silhouette
+from torchfit.viz.raster import draw_polyline, outer_outlines, render_shaded, render_silhouette
 
 __all__ = ["nominal_view", "render_pose_preview"]
 

@@ -1,0 +1,43 @@
+"""The tools' configuration: the schema (:mod:`torchfit.config.schema`), YAML loading with
+``--set`` overrides (:mod:`torchfit.config.loader`) and the command-line plumbing
+(:mod:`torchfit.config.cli`). Only the pipeline and the tools import this package."""
+
+from torchfit.config.loader import (
+    apply_overrides,
+    config_from_dict,
+    config_to_dict,
+    load_config,
+    parse_yaml,
+    save_config,
+)
+from torchfit.config.schema import (
+    Config,
+    DataConfig,
+    FitConfig,
+    ModelConfig,
+    OutputConfig,
+    PartsConfig,
+    RunConfig,
+    SegmentationConfig,
+    SolverConfig,
+    StageConfig,
+)
+
+__all__ = [
+    "RunConfig",
+    "DataConfig",
+    "ModelConfig",
+    "SegmentationConfig",
+    "SolverConfig",
+    "StageConfig",
+    "FitConfig",
+    "OutputConfig",
+    "PartsConfig",
+    "Config",
+    "load_config",
+    "config_from_dict",
+    "config_to_dict",
+    "apply_overrides",
+    "save_config",
+    "parse_yaml",
+]

@@ -1,0 +1,210 @@
+"""The configuration schema of the tools: one section per pipeline stage.
+
+The sections compose the option dataclasses that the numeric packages own
+(:class:`torchfit.fit.FitOptions`, :class:`torchfit.fit.StageOptions`,
+:class:`torchfit.solver.LMOptions`, :class:`torchfit.parts.PartsOptions`, …) instead of
+mirroring them; a section adds only what the pipeline itself decides (batching, the method,
+the stage schedule). :mod:`torchfit.config.loader` checks a YAML file against it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Literal
+
+from torchfit.fit.problem import FitOptions
+from torchfit.fit.stages import StageOptions
+from torchfit.parts.options import PartsOptions
+from torchfit.solver.options import LMOptions
+
+__all__ = [
+    "RunConfig",
+    "DataConfig",
+    "ModelConfig",
+    "SegmentationConfig",
+    "SolverConfig",
+    "StageConfig",
+    "FitConfig",
+    "OutputConfig",
+    "PartsConfig",
+    "Config",
+]
+
+#: A stage of the schedule (the fit's own options).
+StageConfig = StageOptions
+#: The ``parts`` section (the part decomposition's own options).
+PartsConfig = PartsOptions
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Where and how a run executes.
+
+    Attributes:
+        name: the run's name; the run folder is ``runs/<name>`` unless ``out`` is set.
+        out: the run folder.
+        device: torch device of the fit.
+        dtype: floating-point type of the fit.
+        seed: random seed.
+        resume: skip subjects whose outputs are complete.
+        num_threads: torch CPU threads (None: torch's default).
+        keep_heap: glibc malloc keeps freed memory (:func:`torchfit.solver.keep_heap`).
+    """
+
+    name: str = "run"
+    out: str | None = None
+    device: str = "cpu"
+    dtype: Literal["float32", "float64"] = "float64"
+    seed: int = 0
+    resume: bool = True
+    num_threads: int | None = None
+    keep_heap: bool = False
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """The dataset: a folder of subject folders, or a manifest file listing them.
+
+    Attributes:
+        root: the folder or manifest.
+        subjects: restrict to these subject folder names.
+    """
+
+    root: str | None = None
+    subjects: tuple[str, ...] | None = None
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The template body model.
+
+    Attributes:
+        template: a shipped template name (``mpeg4_full``, ``mpeg4_simple``) or a path to a
+            URDF file.
+        scale_min, scale_max: bounds of every segment scale.
+    """
+
+    template: str = "mpeg4_full"
+    scale_min: float = 0.4
+    scale_max: float = 1.9
+
+
+@dataclass(frozen=True)
+class SegmentationConfig:
+    """HSL Mahalanobis background subtraction and clean-up (first paper, section 4)."""
+
+    threshold: float = 4.0  # Mahalanobis distance above which a pixel is the person
+    gamma: float = 0.3  # weight of lightness against the hue/saturation disc, in [0, 1]
+    color_space: Literal["hsl", "rgb"] = "hsl"  # "rgb" is the baseline, for comparisons only
+    regularization: float = 1.0  # variance added to the covariance diagonal, (8-bit levels)^2
+    min_background_frames: int = 5
+    background: Literal["frames", "temporal_median"] = "frames"
+    open_kernel: int = 3
+    close_kernel: int = 7
+    largest_region: bool = True  # keep only the largest region (one person); false keeps all
+    fill_holes: bool = True
+    # largest hole filled, as a fraction of the silhouette's area (holes included); None fills
+    # every hole. A small value keeps the gap between the legs when a shadow closes it below
+    max_hole_area: float | None = None
+    # explicit cast-shadow test (the first paper's suggested improvement, its reference [4]):
+    # a pixel darker than the background by an RGB ratio in shadow_ratio, with a colour
+    # direction within shadow_chroma (radians) of the background's, is background
+    shadow_test: bool = False
+    shadow_ratio: tuple[float, float] = (0.5, 0.95)
+    shadow_chroma: float = 0.05
+    # the shadow test applies only to the lowest shadow_band fraction of the foreground's
+    # height (cast shadows lie on the floor around the feet; grey clothing on a grey wall
+    # passes the colour test too); 1 applies it everywhere
+    shadow_band: float = 1.0
+    # keep as person the shadow-like pixels with person both above and below them in their
+    # image column (a grey shin between the knee and a dark shoe), which a cast shadow on the
+    # floor beside or in front of the feet never has
+    shadow_bridge: bool = False
+    distance: Literal["chamfer", "euclidean"] = "chamfer"
+    # run the per-pixel colour test through torch.compile (needs a C++ compiler on CPU; about a
+    # minute to compile the first time, cached afterwards; several times faster per frame)
+    compile: bool = False
+
+
+@dataclass(frozen=True)
+class SolverConfig(LMOptions):
+    """The Levenberg–Marquardt options (:class:`torchfit.solver.LMOptions`, inherited) and the
+    Jacobian the fit uses.
+
+    Attributes:
+        jacobian: ``autograd`` (the fit's own forward x reverse-mode Jacobian at the model
+            contour), or ``forward``, ``reverse``, ``numeric``: the solver's generic
+            forward-mode, reverse-mode or forward-difference Jacobian of the whole residual
+            (slower; for checks). See :data:`torchfit.fit.JACOBIANS`.
+    """
+
+    jacobian: Literal["autograd", "forward", "reverse", "numeric"] = "autograd"
+
+    def lm_options(self, max_iter: int | None = None) -> LMOptions:
+        """These options as :class:`LMOptions` (``max_iter`` overrides, for a stage's own
+        limit)."""
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(LMOptions)}
+        if max_iter is not None:
+            values["max_iter"] = max_iter
+        return LMOptions(**values)
+
+
+def _default_stages() -> tuple[StageOptions, ...]:
+    return (
+        StageOptions(name="legs_upper_body", scales=("legs", "upper_body"), joints=True),
+        StageOptions(name="all", scales=("all",), joints=True),
+    )
+
+
+@dataclass(frozen=True)
+class FitConfig(FitOptions):
+    """The fitting problem (:class:`torchfit.fit.FitOptions`, inherited) and how the pipeline
+    runs it.
+
+    Attributes:
+        stages: the stage schedule (:class:`torchfit.fit.StageOptions`).
+        method: ``autograd_lm`` (the batched LM of this library) or ``minpack_rendered`` (the
+            paper's own formulation: rendered contours, forward differences, MINPACK
+            ``lmdif``, one subject at a time; the baseline).
+        initial_guess: ``template`` or ``parts`` (the second paper's automatic start).
+        batch_size: subjects solved together in one batched LM run.
+        max_contour_rms_px: a fitted subject whose model contour is on average further than
+            this from the person's contour in some posture (e_M, pixels) gets status
+            ``poor_fit`` (check its overlays).
+    """
+
+    stages: tuple[StageOptions, ...] = field(default_factory=_default_stages)
+    method: Literal["autograd_lm", "minpack_rendered"] = "autograd_lm"
+    initial_guess: Literal["template", "parts"] = "template"
+    batch_size: int = 4
+    max_contour_rms_px: float = 15.0
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """What a run writes.
+
+    Attributes:
+        overlays: overlay_pose<j>.png per subject.
+        mesh_format: the fitted body's mesh file, ``glb`` or ``obj``.
+        tensorboard: TensorBoard event files under ``tb/``.
+    """
+
+    overlays: bool = True
+    mesh_format: Literal["glb", "obj"] = "glb"
+    tensorboard: bool = True
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration of a tool run."""
+
+    run: RunConfig = field(default_factory=RunConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    fit: FitConfig = field(default_factory=FitConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    parts: PartsConfig = field(default_factory=PartsConfig)

@@ -1,0 +1,121 @@
+"""The person side of the fit: contours, distance maps and uncertain pixels of B subjects.
+
+Pixels are ``(u, v)``, pixel (0, 0) the centre of the top-left pixel; distances in pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from torchfit.camera import Camera
+from torchfit.errors import ShapeError
+
+__all__ = ["PersonData", "person_data_from_masks"]
+
+
+@dataclass
+class PersonData:
+    """The fixed person side of B subjects, J fitted postures each.
+
+    Attributes:
+        contours: J tensors (B, C_j, 2) of person contour pixels (u, v), padded.
+        valid: J bool tensors (B, C_j).
+        distance_maps: J tensors (B, H, W): D_P, pixels to the person's contour (finite).
+        camera: B cameras.
+        uncertain: optional J bool tensors (B, H, W): pixels where the silhouette is not to be
+            trusted (those the segmentation's shadow test removed). A model contour point on
+            such a pixel does not count in e_M, and ``valid`` already excludes the person
+            contour pixels next to them (see :func:`person_data_from_masks`).
+    """
+
+    contours: list[torch.Tensor]
+    valid: list[torch.Tensor]
+    distance_maps: list[torch.Tensor]
+    camera: Camera
+    uncertain: list[torch.Tensor] | None = None
+
+    @property
+    def batch_size(self) -> int:
+        """The number of subjects B."""
+        return self.camera.batch_size
+
+    @property
+    def contour_lengths(self) -> list[int]:
+        """The padded person contour length ``C_j`` of every posture."""
+        return [v.shape[1] for v in self.valid]
+
+    def subset(self, index: list[int] | torch.Tensor) -> PersonData:
+        """The same data for the subjects ``index`` (padding kept)."""
+        idx = torch.as_tensor(index, dtype=torch.long)
+        return PersonData(
+            [c[idx] for c in self.contours],
+            [v[idx] for v in self.valid],
+            [d[idx] for d in self.distance_maps],
+            self.camera[idx],
+            None if self.uncertain is None else [u[idx] for u in self.uncertain],
+        )
+
+
+def person_data_from_masks(
+    masks: torch.Tensor,
+    camera: Camera,
+    method: str = "chamfer",
+    stride: int = 1,
+    dtype: torch.dtype = torch.float64,
+    uncertain: torch.Tensor | None = None,
+    margin_px: int = 2,
+) -> PersonData:
+    """Person contours and distance maps from silhouettes.
+
+    Args:
+        masks: (B, J, H, W) bool silhouettes, J poses per subject.
+        camera: B cameras.
+        method: distance transform, ``"chamfer"`` (the paper's 3-4) or ``"euclidean"``.
+        stride: keep every ``stride``-th contour pixel.
+        dtype: dtype of the contours and distance maps.
+        uncertain: optional (B, J, H, W) bool, pixels where the silhouette is not to be
+            trusted (:attr:`torchfit.segmentation.SegmentationResult.shadow`): person contour
+            pixels within ``margin_px`` of one do not count in e_P, and model contour points
+            on one do not count in e_M. A silhouette cut short where a foot or shin looked
+            like its own shadow then neither pulls the model's feet up nor pushes the model
+            back (the floor contact would turn that into a taller body).
+        margin_px: see ``uncertain``.
+
+    Returns:
+        :class:`PersonData`; an empty silhouette gives an empty contour and a map of large
+        constant distance (that pose then only constrains through e_M).
+    """
+    from torchfit.contours import mask_to_distance_map, trace_outer_contour
+
+    b, n_pose, h, w = masks.shape
+    near = None
+    if uncertain is not None:
+        if uncertain.shape != masks.shape:
+            raise ShapeError(
+                f"uncertain: expected the shape of masks {tuple(masks.shape)}, "
+                f"got {tuple(uncertain.shape)}"
+            )
+        k_size = 2 * margin_px + 1
+        near = torch.nn.functional.max_pool2d(
+            uncertain.float(), k_size, stride=1, padding=margin_px
+        ).bool()
+    contours, valid, maps = [], [], []
+    for k in range(n_pose):
+        traced = [trace_outer_contour(masks[i, k])[::stride] for i in range(b)]
+        n = max(1, max(len(c) for c in traced))
+        pts = torch.zeros(b, n, 2, dtype=dtype)
+        ok = torch.zeros(b, n, dtype=torch.bool)
+        for i, c in enumerate(traced):
+            pts[i, : len(c)] = c.to(dtype)
+            ok[i, : len(c)] = True
+            if near is not None and len(c):
+                c = c.long()
+                ok[i, : len(c)] &= ~near[i, k, c[:, 1], c[:, 0]]
+        contours.append(pts)
+        valid.append(ok)
+        dmap = mask_to_distance_map(masks[:, k : k + 1], method)[:, 0].to(dtype)
+        maps.append(torch.nan_to_num(dmap, posinf=float(h + w)))
+    flags = None if uncertain is None else [uncertain[:, k] for k in range(n_pose)]
+    return PersonData(contours, valid, maps, camera, flags)

@@ -1,0 +1,158 @@
+"""Pose glue: parameter rows of the fit -> the body posed and standing on the floor.
+
+World frame as design.md: z up, metres, the floor at z = 0. Each posture's root rotation is
+``Rz(base_yaw + yaw) Ry(pitch) Rx(roll)``, ``base_yaw`` turning the template to face the
+camera (postures 3 and 6 a further 90° to the right); its root height follows from floor
+contact (the lower sole touches z = 0). Everything here accepts forward-mode dual tensors.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from torchfit._dual import is_dual, lift
+from torchfit.body.model import BodyModel
+from torchfit.body.postures import POSTURES, facing_yaw, nominal_joint_angles
+from torchfit.errors import ModelError
+from torchfit.fit.layout import ParamLayout
+
+__all__ = ["DEFAULT_FREE_JOINTS", "euler_rotation", "Poser", "free_joints_for"]
+
+_LIMB_DOFS = (
+    "shoulder_flexion",
+    "shoulder_abduct",
+    "elbow_flexion",
+    "hip_flexion",
+    "hip_abduct",
+    "knee_flexion",
+)
+_COMMON = tuple(f"{s}_{d}" for d in _LIMB_DOFS for s in "lr") + ("vc4_tilt", "vc4_roll")
+
+#: Free joints per posture (design.md section 4); names absent from a template are skipped.
+DEFAULT_FREE_JOINTS: dict[int, tuple[str, ...]] = {
+    1: _COMMON,
+    2: _COMMON,
+    3: _COMMON + ("vl5_tilt", "l_ankle_flexion"),
+    4: _COMMON + ("l_shoulder_twisting", "r_shoulder_twisting"),
+    5: _COMMON + ("l_shoulder_twisting", "r_shoulder_twisting"),
+    6: _COMMON + ("vl5_tilt",),
+}
+
+
+def free_joints_for(
+    dof_names: list[str], poses: list[int], chosen: dict[str, list[str]] | None
+) -> dict[int, list[str]]:
+    """The free DOF names per posture: ``chosen["pose<j>"]`` where given, else the defaults
+    (:data:`DEFAULT_FREE_JOINTS`, restricted to the template's DOFs)."""
+    out = {}
+    for j in poses:
+        wanted = chosen.get(f"pose{j}") if chosen else None
+        if wanted is None:
+            wanted = [d for d in DEFAULT_FREE_JOINTS[j] if d in dof_names]
+        out[j] = list(wanted)
+    return out
+
+
+def euler_rotation(yaw: torch.Tensor, roll: torch.Tensor, pitch: torch.Tensor) -> torch.Tensor:
+    """R = Rz(yaw) Ry(pitch) Rx(roll), (B,) radians each -> (B, 3, 3)."""
+    one, zero = torch.ones_like(yaw), torch.zeros_like(yaw)
+
+    def mat(rows):
+        return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+    cz, sz, cy, sy, cx, sx = yaw.cos(), yaw.sin(), pitch.cos(), pitch.sin(), roll.cos(), roll.sin()
+    rz = mat([[cz, -sz, zero], [sz, cz, zero], [zero, zero, one]])
+    ry = mat([[cy, zero, sy], [zero, one, zero], [-sy, zero, cy]])
+    rx = mat([[one, zero, zero], [zero, cx, -sx], [zero, sx, cx]])
+    return rz @ ry @ rx
+
+
+def nominal_angles(model: BodyModel, poses: list[int]) -> dict[int, torch.Tensor]:
+    """Posture number -> (Q,) nominal joint angles of the template at that posture."""
+    return {
+        j: nominal_joint_angles(model.dof_names, POSTURES[j - 1], model.dtype).to(model.device)
+        for j in poses
+    }
+
+
+class Poser:
+    """Poses the body of parameter rows at a fitted posture, standing on the floor.
+
+    Args:
+        model: the body model.
+        layout: the parameter layout.
+        camera_centres: (B, 3) camera centres, world frame (for each subject's facing yaw).
+    """
+
+    def __init__(self, model: BodyModel, layout: ParamLayout, camera_centres: torch.Tensor):
+        self.model = model
+        self.layout = layout
+        self.kw = {"dtype": model.dtype, "device": model.device}
+        for name in ("l_sole", "r_sole"):
+            if name not in model.template.landmarks:
+                raise ModelError(f"template {model.template.name!r} lacks landmark {name!r}")
+        self.soles = [model.template.landmarks["l_sole"], model.template.landmarks["r_sole"]]
+        self.nominal = nominal_angles(model, list(layout.poses))
+        facing = facing_yaw(camera_centres)
+        self.base_yaw = {
+            j: facing + math.radians(POSTURES[j - 1].turn_deg) for j in layout.poses
+        }
+
+    def state(self, full: torch.Tensor, j: int, rows: torch.Tensor):
+        """Scales, angles and root of posture j for parameter rows ``full`` (N, P).
+
+        Args:
+            full: (N, P) parameters.
+            j: the posture.
+            rows: (N,) subject index of each row (for the yaw of its camera).
+
+        Returns:
+            scales (N, S, 3), joint angles (N, Q), root rotation (N, 3, 3), translation (N, 3).
+        """
+        m = self.model
+        scales = m.expand_scales(self.layout.group_scales(full))
+        block = self.layout.blocks[j]
+        n_joint = block.num_joints
+        dual = is_dual(full)
+        # scatter the free joints without in-place writes (dual tensors flow through)
+        onehot = torch.zeros(n_joint, m.num_dofs, **self.kw)
+        onehot[torch.arange(n_joint), torch.tensor(block.dofs, dtype=torch.long)] = 1.0
+        fixed = lift((self.nominal[j] * (1 - onehot.sum(0))).expand(full.shape[0], -1), dual)
+        free = full[:, block.joints]
+        angles = fixed + free @ lift(onehot, dual)
+        tx, ty, yaw, roll, pitch = full[:, block.root].unbind(-1)
+        rot = euler_rotation(lift(self.base_yaw[j][rows], dual) + yaw, roll, pitch)
+        trans = torch.stack([tx, ty, torch.zeros_like(tx)], -1)
+        return scales, angles, rot, trans
+
+    def world(
+        self,
+        full: torch.Tensor,
+        j: int,
+        rows: torch.Tensor,
+        vertex_index: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posed vertices and segment origins of posture j, standing on the floor.
+
+        Args:
+            full: (N, P) parameters.
+            j: the posture.
+            rows: (N,) subject index of each row.
+            vertex_index: optional (K,) template vertices to pose (default: all).
+
+        Returns:
+            (N, K, 3) vertices and (N, S, 3) segment origins, metres, world frame.
+        """
+        scales, angles, rot, trans = self.state(full, j, rows)
+        soles = torch.tensor(self.soles, device=full.device)
+        if vertex_index is None:
+            vertex_index = torch.arange(self.model.template.vertices.shape[0], device=full.device)
+        idx = torch.cat([vertex_index, soles])
+        out = self.model(scales, angles, trans, rot, vertex_index=idx)
+        verts = out.vertices
+        floor = torch.minimum(verts[:, -2, 2], verts[:, -1, 2])
+        zero = torch.zeros_like(floor)
+        lift_z = torch.stack([zero, zero, floor], -1)[:, None]
+        return verts[:, :-2] - lift_z, out.origins - lift_z

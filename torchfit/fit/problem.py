@@ -1,0 +1,392 @@
+"""The six-posture silhouette fit (first paper, sections 6–8; design.md section 6), batched.
+
+:class:`SilhouetteFit` is the problem for B subjects: residuals (e_P per person contour pixel
+and e_M per posture, then e_B per parameter; :mod:`torchfit.fit.layout` owns where each lives)
+and their Jacobian.
+
+The Jacobian is computed with the discrete contour choice made once per evaluation point. Per
+posture, forward mode gives the pixel tangents of the contour vertices for the parameters that
+posture depends on (the scales and its own parameters), folded into the batch dimension, and
+reverse mode the derivative of every residual entry w.r.t. the pixels of its own edge
+endpoints; their product is the posture's block.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.autograd.forward_ad as fwad
+
+from torchfit.body.model import BodyModel
+from torchfit.camera import camera_centre, project_points
+from torchfit.errors import ConfigError
+from torchfit.fit.layout import JointBounds, ParamLayout
+from torchfit.fit.model_contour import (
+    ContourEndpoints,
+    ContourSelection,
+    EdgeSampler,
+    contour_endpoints,
+    point_to_edge_distance,
+    select_contour,
+)
+from torchfit.fit.person import PersonData
+from torchfit.fit.pose import Poser, free_joints_for, nominal_angles
+from torchfit.fit.residuals import barrier, model_to_person, person_to_model
+
+__all__ = ["FitOptions", "SilhouetteFit"]
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Options of the fitting problem (first paper, sections 6–8).
+
+    Attributes:
+        poses: the fitted postures (1..6), in order.
+        free_joints: per-posture free joint DOFs, e.g. ``{"pose3": ["l_knee_flexion", ...]}``;
+            a posture not named keeps the defaults of design.md section 4
+            (:data:`torchfit.fit.pose.DEFAULT_FREE_JOINTS`).
+        translation_max_m: floor translation interval, each axis, metres.
+        yaw_max_deg: yaw interval around the nominal view, degrees.
+        tilt_max_deg: roll / pitch interval, degrees.
+        barrier_weight: e_B slope outside an interval.
+        samples_per_edge: model contour candidates per mesh edge.
+        contour_tolerance_px: a sample within this of the rendered contour is on it.
+        contour_stride: use every n-th person contour pixel in e_P.
+        ignore_shadow: treat the pixels the segmentation's shadow test removed as uncertain
+            rather than as background: no e_P from person contour pixels within
+            ``shadow_margin_px`` of them, no e_M from model contour points on them (has an
+            effect only where the segmentation ran its shadow test).
+        shadow_margin_px: see ``ignore_shadow``.
+    """
+
+    poses: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
+    free_joints: dict[str, list[str]] | None = None
+    translation_max_m: float = 0.15
+    yaw_max_deg: float = 15.0
+    tilt_max_deg: float = 5.0
+    barrier_weight: float = 100.0
+    samples_per_edge: int = 4
+    contour_tolerance_px: float = 1.0
+    contour_stride: int = 1
+    ignore_shadow: bool = True
+    shadow_margin_px: int = 2
+
+    def __post_init__(self) -> None:
+        poses = list(self.poses)
+        if not poses or len(set(poses)) != len(poses) or not set(poses) <= set(range(1, 7)):
+            raise ConfigError(f"fit.poses: expected distinct postures from 1..6, got {poses}")
+
+
+class SilhouetteFit:
+    """The fitting problem for a batch of subjects: residuals and their Jacobian.
+
+    Args:
+        model: the body model (its dtype and device are used).
+        person: the person data of B subjects.
+        options: postures, free joints, bounds, contour sampling.
+        scale_bounds: (min, max) of every segment scale.
+    """
+
+    def __init__(
+        self,
+        model: BodyModel,
+        person: PersonData,
+        options: FitOptions | None = None,
+        scale_bounds: tuple[float, float] = (0.4, 1.9),
+    ) -> None:
+        self.model = model
+        self.person = person
+        self.options = options = options or FitOptions()
+        self.scale_bounds = scale_bounds
+        kw = {"dtype": model.dtype, "device": model.device}
+        self.kw = kw
+        self.batch = person.batch_size
+        self.camera = person.camera.to(device=model.device, dtype=model.dtype)
+        self.poses = list(options.poses)
+        self.sampler = EdgeSampler(model.faces, options.samples_per_edge)
+        free = free_joints_for(list(model.dof_names), self.poses, options.free_joints)
+        layout = ParamLayout(
+            model.template.scale_groups,
+            model.dof_names,
+            model.joint_lower,
+            model.joint_upper,
+            nominal_angles(model, self.poses),
+            free,
+            scale_bounds,
+            JointBounds(options.translation_max_m, options.yaw_max_deg, options.tilt_max_deg),
+        )
+        self.layout = layout
+        self.residual_layout = layout.residual_layout(person.contour_lengths)
+        self.poser = Poser(model, layout, camera_centre(self.camera.R, self.camera.t))
+        self.lower = layout.lower(**kw)
+        self.upper = layout.upper(**kw)
+
+    def subset(self, index: list[int]) -> SilhouetteFit:
+        """The same problem for a subset of the subjects (same layout and residual width)."""
+        return SilhouetteFit(self.model, self.person.subset(index), self.options, self.scale_bounds)
+
+    # ------------------------------------------------------------------------------------
+    @property
+    def num_params(self) -> int:
+        """P, the number of parameters per subject."""
+        return self.layout.num_params
+
+    def initial_params(self) -> torch.Tensor:
+        """(B, P) the template start: unit scales, nominal angles, root on the mark."""
+        return self.layout.initial(**self.kw).expand(self.batch, -1).clone()
+
+    def stage_indices(self, scales: list[str], joints: bool, root: bool) -> torch.Tensor:
+        """Indices of the parameters a stage frees (its scale groups, and every posture's
+        joints and/or root)."""
+        idx = self.layout.free_indices(list(scales), joints, root)
+        if not idx:
+            raise ConfigError(f"fit stage frees no parameter (scales={list(scales)})")
+        return torch.tensor(idx, device=self.model.device)
+
+    # ------------------------------------------------------------------------------------
+    def pose_state(self, full: torch.Tensor, j: int, rows: torch.Tensor):
+        """Scales, angles and root of pose j (see :meth:`torchfit.fit.pose.Poser.state`)."""
+        return self.poser.state(full, j, rows)
+
+    def pose_world(
+        self,
+        full: torch.Tensor,
+        j: int,
+        rows: torch.Tensor,
+        vertex_index: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posed vertices (N, K, 3) and segment origins (N, S, 3) of pose j, standing on the
+        floor (see :meth:`torchfit.fit.pose.Poser.world`)."""
+        return self.poser.world(full, j, rows, vertex_index)
+
+    def project(self, points: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """(N, K, 2) pixels of world points (N, K, 3) in each row's camera."""
+        return project_points(points, self.camera[rows])
+
+    def pose_pixels(
+        self,
+        full: torch.Tensor,
+        j: int,
+        rows: torch.Tensor,
+        vertex_index: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Posed, floor-standing vertices of pose j projected into each row's camera.
+
+        Args:
+            full: (N, P) parameters.
+            rows: (N,) subject index of each row.
+            vertex_index: optional (K,) template vertices to project (default: all).
+
+        Returns:
+            (N, K, 2) pixels.
+        """
+        return self.project(self.pose_world(full, j, rows, vertex_index)[0], rows)
+
+    @torch.no_grad()
+    def select(self, full: torch.Tensor) -> dict[int, ContourSelection]:
+        """The discrete model-contour choice at ``full`` (B, P), one per pose."""
+        rows = torch.arange(self.batch, device=full.device)
+        out = {}
+        for k, j in enumerate(self.poses):
+            pixels = self.pose_pixels(full, j, rows)
+            out[j] = select_contour(
+                self.sampler,
+                pixels,
+                self.person.contours[k],
+                self.person.valid[k],
+                self.camera.image_size,
+                self.options.contour_tolerance_px,
+            )
+        return out
+
+    def _sample_rows(self, k: int, rows: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """Bilinear D_P of pose index k for each row's subject at (N, n, 2) points."""
+        dmap = self.person.distance_maps[k].to(points.dtype)  # (B, H, W)
+        h, w = dmap.shape[-2:]
+        u = points[..., 0].clamp(0, w - 1)
+        v = points[..., 1].clamp(0, h - 1)
+        u0 = u.detach().floor().clamp(max=w - 2)
+        v0 = v.detach().floor().clamp(max=h - 2)
+        fu, fv = u - u0, v - v0
+        u0, v0 = u0.long(), v0.long()
+        r = rows[:, None].expand_as(u0)
+        d00, d01 = dmap[r, v0, u0], dmap[r, v0, u0 + 1]
+        d10, d11 = dmap[r, v0 + 1, u0], dmap[r, v0 + 1, u0 + 1]
+        return (d00 * (1 - fu) + d01 * fu) * (1 - fv) + (d10 * (1 - fu) + d11 * fu) * fv
+
+    def _terms(
+        self, k: int, rows: torch.Tensor, ends: ContourEndpoints, pix: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """e_P (N, C) and the model contour points (N, N_m, 2) from endpoint pixels ``pix``."""
+        contour = self.person.contours[k][rows].to(pix["pa"])
+        valid = self.person.valid[k][rows]
+        dist = point_to_edge_distance(
+            contour, pix["pa"], pix["pb"], ends.person_t.to(contour), 0.5 / self.sampler.k
+        )
+        t = ends.model_t.to(contour)[..., None]
+        points = pix["ma"] * (1 - t) + pix["mb"] * t
+        return person_to_model(dist, valid), points
+
+    def _endpoint_pixels(
+        self, pixels: torch.Tensor, lookup: torch.Tensor, ends: ContourEndpoints
+    ) -> dict[str, torch.Tensor]:
+        r = torch.arange(pixels.shape[0], device=pixels.device)[:, None]
+        return {
+            "pa": pixels[r, lookup[ends.person_a]],
+            "pb": pixels[r, lookup[ends.person_b]],
+            "ma": pixels[r, lookup[ends.model_a]],
+            "mb": pixels[r, lookup[ends.model_b]],
+        }
+
+    def _prepare(
+        self, sel: ContourSelection
+    ) -> tuple[ContourEndpoints, torch.Tensor, torch.Tensor]:
+        ends = contour_endpoints(self.sampler, sel)
+        vidx = ends.vertices()
+        lookup = torch.zeros(
+            self.model.template.vertices.shape[0], dtype=torch.long, device=vidx.device
+        )
+        lookup[vidx] = torch.arange(vidx.numel(), device=vidx.device)
+        return ends, vidx, lookup
+
+    def _pose_terms(
+        self,
+        k: int,
+        rows: torch.Tensor,
+        ends: ContourEndpoints,
+        sel: ContourSelection,
+        pix: dict[str, torch.Tensor],
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        e_p, points = self._terms(k, rows, ends, pix)
+        valid = sel.sample_valid
+        if self.person.uncertain is not None:
+            valid = valid & ~self._uncertain_at(k, rows, points)
+        e_m = model_to_person(self._sample_rows(k, rows, points), valid)
+        return e_p, e_m
+
+    def _uncertain_at(self, k: int, rows: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """(N, n) bool: the uncertain flag of pose index k at the pixel nearest each point (a
+        choice, like the contour's, made at each evaluation point)."""
+        flags = self.person.uncertain[k].to(points.device)  # (B, H, W)
+        h, w = flags.shape[-2:]
+        p = points.detach()
+        u = p[..., 0].round().clamp(0, w - 1).long()
+        v = p[..., 1].round().clamp(0, h - 1).long()
+        return flags[rows[:, None].expand_as(u), v, u]
+
+    def pose_residual(
+        self, full: torch.Tensor, j: int, rows: torch.Tensor, selection: ContourSelection
+    ) -> torch.Tensor:
+        """[e_P (C_j entries), e_M] of pose j for rows ``full`` (N, P) -> (N, C_j + 1)."""
+        k = self.poses.index(j)
+        ends, vidx, lookup = self._prepare(selection)
+        pixels = self.pose_pixels(full, j, rows, vidx)
+        e_p, e_m = self._pose_terms(
+            k, rows, ends, selection, self._endpoint_pixels(pixels, lookup, ends)
+        )
+        return torch.cat([e_p, e_m[:, None]], dim=1)
+
+    def residual_mask(self) -> torch.Tensor:
+        """(B, M) validity of the residual entries (padding of e_P is False)."""
+        device = self.person.valid[0].device
+        parts = [
+            torch.cat([v, torch.ones(self.batch, 1, dtype=torch.bool, device=v.device)], 1)
+            for v in self.person.valid
+        ]
+        parts.append(torch.ones(self.batch, self.num_params, dtype=torch.bool, device=device))
+        return torch.cat(parts, 1)
+
+    def barrier_residual(self, full: torch.Tensor) -> torch.Tensor:
+        """(B, P) e_B of parameter rows ``full``."""
+        return barrier(full, self.lower, self.upper, self.options.barrier_weight)
+
+    def residual(
+        self, full: torch.Tensor, selections: dict[int, ContourSelection] | None = None
+    ) -> torch.Tensor:
+        """(B, M) residuals at ``full`` (B, P); the contour choice is made here if not given."""
+        selections = selections or self.select(full)
+        rows = torch.arange(full.shape[0], device=full.device)
+        parts = [self.pose_residual(full, j, rows, selections[j]) for j in self.poses]
+        parts.append(self.barrier_residual(full))
+        return torch.cat(parts, 1)
+
+    # ------------------------------------------------------------------------------------
+    def jacobian(
+        self, full: torch.Tensor, free: torch.Tensor, selections: dict[int, ContourSelection]
+    ) -> torch.Tensor:
+        """(B, M, F) Jacobian of :meth:`residual` w.r.t. the ``free`` (F,) parameters.
+
+        Per pose, two autograd passes meet at the projected contour vertices:
+
+        - forward mode gives the pixel tangents of the vertices that carry contour samples,
+          for the tangents this pose depends on (the scales and its own parameters), folded
+          into the batch dimension;
+        - reverse mode gives the derivative of every residual entry w.r.t. the pixels of its
+          own edge endpoints (each e_P entry depends on one edge, e_M on the sample edges).
+
+        Their product is the Jacobian block.
+        """
+        b = full.shape[0]
+        f = free.numel()
+        rl = self.residual_layout
+        jac = torch.zeros(b, rl.size, f, **self.kw)
+        rows = torch.arange(b, device=full.device)
+        scale_cols = (free < self.layout.num_scale_params).nonzero().flatten()
+        for k, j in enumerate(self.poses):
+            sel = selections[j]
+            sl = self.layout.blocks[j].columns
+            pose_cols = ((free >= sl.start) & (free < sl.stop)).nonzero().flatten()
+            cols = torch.cat([scale_cols, pose_cols])
+            c = cols.numel()
+            if c == 0:
+                continue
+            ends, vidx, lookup = self._prepare(sel)
+            # reverse mode: local derivatives of the residual entries w.r.t. endpoint pixels
+            with torch.no_grad():
+                pixels = self.pose_pixels(full, j, rows, vidx)
+            pix = {
+                n: v.detach().requires_grad_(True)
+                for n, v in self._endpoint_pixels(pixels, lookup, ends).items()
+            }
+            with torch.enable_grad():
+                e_p, e_m = self._pose_terms(k, rows, ends, sel, pix)
+                grads = torch.autograd.grad(
+                    e_p.sum() + e_m.sum(), list(pix.values()), allow_unused=True
+                )
+            local = {
+                n: (g if g is not None else torch.zeros_like(pix[n]))
+                for n, g in zip(pix, grads, strict=True)
+            }
+            # forward mode: pixel tangents of the contour vertices, c directions per subject
+            rows_rep = rows.repeat_interleave(c)
+            tangent = torch.zeros(b * c, full.shape[1], **self.kw)
+            tangent[torch.arange(b * c), free[cols].repeat(b)] = 1.0
+            with fwad.dual_level():
+                dual = fwad.make_dual(full.repeat_interleave(c, dim=0), tangent)
+                tan = fwad.unpack_dual(self.pose_pixels(dual, j, rows_rep, vidx)).tangent
+            tan = tan.reshape(b, c, -1, 2).permute(0, 2, 1, 3)  # (B, K, c, 2)
+            r = rows[:, None]
+            t_of = {
+                n: tan[r, lookup[getattr(ends, attr)]]
+                for n, attr in (
+                    ("pa", "person_a"),
+                    ("pb", "person_b"),
+                    ("ma", "model_a"),
+                    ("mb", "model_b"),
+                )
+            }
+            block_p = torch.einsum("bid,bicd->bic", local["pa"], t_of["pa"]) + torch.einsum(
+                "bid,bicd->bic", local["pb"], t_of["pb"]
+            )
+            block_m = torch.einsum("bnd,bncd->bc", local["ma"], t_of["ma"]) + torch.einsum(
+                "bnd,bncd->bc", local["mb"], t_of["mb"]
+            )
+            jac[:, rl.e_p(j), cols] = block_p
+            jac[:, rl.e_m(j), cols] = block_m
+        # barrier: elementwise, derivative weight * (-1 below, +1 above, 0 inside)
+        x = full[:, free]
+        lo, hi = self.lower[free], self.upper[free]
+        slope = self.options.barrier_weight * ((x > hi).to(x) - (x < lo).to(x))
+        jac[:, rl.barrier.start + free, torch.arange(f)] = slope
+        return jac

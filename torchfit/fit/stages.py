@@ -1,0 +1,130 @@
+"""One stage of the fit: Levenberg–Marquardt over a subset of the parameters.
+
+A stage frees some scale groups and, for every posture, its joints and/or its root offsets;
+the other parameters stay where the previous stage left them. The discrete model-contour
+choice is held fixed while the solver tries steps, so every trial is judged on the same smooth
+objective, and it is refreshed at each accepted point (where the Jacobian is computed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from torchfit.fit.problem import SilhouetteFit
+from torchfit.solver import LMOptions, LMResult, levenberg_marquardt
+from torchfit.solver.jacobians import make_jacobian
+
+__all__ = ["StageOptions", "JACOBIANS", "solve_stage"]
+
+#: The Jacobians a stage can use: ``"autograd"`` the problem's own (forward-mode pixel
+#: tangents of the contour vertices times reverse-mode local derivatives, per posture);
+#: ``"forward"``, ``"reverse"`` and ``"numeric"`` the solver's generic forward-mode,
+#: reverse-mode and forward-difference Jacobians of the whole residual (slower; for checks).
+JACOBIANS: tuple[str, ...] = ("autograd", "forward", "reverse", "numeric")
+
+
+@dataclass(frozen=True)
+class StageOptions:
+    """One stage of the fit schedule.
+
+    Attributes:
+        name: the stage's name (in logs, TensorBoard tags and params.json).
+        scales: the free scale groups: group names, aliases (``legs``, ``upper_body``),
+            ``"group:axes"`` or ``"all"``.
+        joints: optimise every posture's free joint angles.
+        root: optimise every posture's floor translation and rotation.
+        max_iter: the stage's own iteration limit (None: the solver's).
+    """
+
+    name: str = "all"
+    scales: tuple[str, ...] = field(default_factory=lambda: ("all",))
+    joints: bool = True
+    root: bool = True
+    max_iter: int | None = None
+
+
+def solve_stage(
+    fit: SilhouetteFit,
+    full: torch.Tensor,
+    stage: StageOptions,
+    options: LMOptions,
+    jacobian: Literal["autograd", "forward", "reverse", "numeric"] = "autograd",
+    callback: Callable | None = None,
+) -> tuple[torch.Tensor, LMResult]:
+    """Run LM over one stage's free parameters.
+
+    Args:
+        fit: the problem.
+        full: (B, P) parameters at the start of the stage.
+        stage: which parameters the stage frees.
+        options: solver options (``max_iter`` as the stage wants it).
+        jacobian: one of :data:`JACOBIANS`.
+        callback: optional solver callback (:class:`torchfit.solver.LMIterate` per iteration).
+
+    Returns:
+        (B, P) parameters after the stage, and the solver's result over the free ones.
+
+    Raises:
+        ValueError: an unknown ``jacobian``.
+    """
+    if jacobian not in JACOBIANS:
+        raise ValueError(f"jacobian: expected one of {list(JACOBIANS)}, got {jacobian!r}")
+    free = fit.stage_indices(list(stage.scales), stage.joints, stage.root)
+    base = full.detach().clone()
+    mask = fit.residual_mask()
+    cache: dict = {}
+    onehot = torch.zeros(free.numel(), base.shape[1], **fit.kw)
+    onehot[torch.arange(free.numel()), free] = 1.0
+
+    def expand(x: torch.Tensor) -> torch.Tensor:
+        reps = x.shape[0] // base.shape[0]
+        return base.repeat(reps, 1) * (1 - onehot.sum(0)) + x @ onehot
+
+    def residual_fn(x: torch.Tensor):
+        full_x = expand(x)
+        if "sel" not in cache:
+            cache["sel"] = fit.select(full_x)
+        reps = x.shape[0] // fit.batch
+        if reps == 1:
+            return fit.residual(full_x, cache["sel"]), mask
+        out = [
+            fit.residual(full_x[i * fit.batch : (i + 1) * fit.batch], cache["sel"])
+            for i in range(reps)
+        ]
+        return torch.cat(out), mask.repeat(reps, 1)
+
+    def own_jacobian(x: torch.Tensor):
+        full_x = expand(x)
+        cache["sel"] = fit.select(full_x)
+        jac = fit.jacobian(full_x, free, cache["sel"])
+        return jac, fit.residual(full_x, cache["sel"])
+
+    generic = make_jacobian(
+        jacobian if jacobian != "autograd" else "forward",
+        residual_fn,
+        free.numel(),
+        mask.shape[1],
+        None,
+        options.fold_batch,
+    )
+
+    def generic_jacobian(x: torch.Tensor):
+        cache["sel"] = fit.select(expand(x))
+        r, _ = residual_fn(x)
+        return generic(x, r, mask), r
+
+    x0 = full[:, free].detach().clone()
+    result = levenberg_marquardt(
+        residual_fn,
+        x0,
+        options=options,
+        jacobian=own_jacobian if jacobian == "autograd" else generic_jacobian,
+        callback=callback,
+    )
+    out = full.detach().clone()
+    out[:, free] = result.x
+    return out, result
