@@ -5,10 +5,23 @@ positions are composed separately (:mod:`torchfit.body.model`) because segment s
 the joint offsets per subject, which a chain with fixed URDF offsets cannot express; rotations
 do not depend on those offsets.
 
-pytorch-kinematics 0.10 writes its transforms in place and does not run under
-``torch.func.vmap``; it is called with its plain-autograd path (``analytical_grad=False``) so
-that both reverse- and forward-mode AD (``torch.autograd.forward_ad``, tangents folded into the
-batch) flow through it.
+pytorch-kinematics parses the URDF and owns the tree and the forward-kinematics pass
+(``Chain.forward_kinematics_tensor``, called with its plain-autograd path
+``analytical_grad=False`` so that reverse- and forward-mode AD both flow through it; it writes
+its transforms in place and does not run under ``torch.func.vmap``). The chain's constants —
+the joint axes and the static frame offsets — are read once through its public API (the
+frames' ``joint.axis``, ``joint.offset`` and ``link.offset``) into buffers of
+:class:`SkeletonChain`, so they follow ``Module.to`` like the rest of the body model.
+
+One private use of pytorch-kinematics remains, in :func:`_forward_kinematics` alone: the
+forward pass reads its constants from the chain's ``axes`` and ``_static_offsets`` attributes,
+and no public argument passes them in. Under forward-mode AD those constants must be dual
+tensors (zero tangent): pytorch-kinematics' public call with its plain constants and dual
+joint angles gives the same numbers bit for bit but costs about 3.5 ms more per call on the
+CPU (mixed dual/plain arithmetic, see :mod:`torchfit._dual`): 2-3x the forward kinematics of
+up to ~100 rows, ~20 % of a 64-row model call; the gap closes towards ~1000 rows.
+``tests/body/test_kinematics_contract.py`` pins those attributes against the public API and
+fails on an upgrade that changes them.
 """
 
 from __future__ import annotations
@@ -22,13 +35,83 @@ import torch
 from torchfit._dual import is_dual, lift
 from torchfit.errors import ModelError, check_shape
 
-__all__ = ["SkeletonChain"]
+__all__ = ["SkeletonChain", "TESTED_PK_VERSION"]
 
 log = logging.getLogger(__name__)
 
+#: The pytorch-kinematics version whose internals :func:`_forward_kinematics` was checked
+#: against (``tests/body/test_kinematics_contract.py``).
+TESTED_PK_VERSION = "0.10.0"
 
-class SkeletonChain:
+
+def _forward_kinematics(
+    chain, joint_angles: torch.Tensor, axes: torch.Tensor, static_offsets: torch.Tensor
+) -> torch.Tensor:
+    """pytorch-kinematics' forward kinematics with the chain's constants supplied by the caller.
+
+    The one place where torchfit touches pytorch-kinematics internals: ``Chain``'s forward
+    pass reads the joint axes from ``chain.axes`` (n_joints, 3) and the per-frame static
+    offsets (link offset @ joint offset) from ``chain._static_offsets`` (num_frames, 4, 4).
+    They are swapped for ``axes`` and ``static_offsets`` (in the dtype of ``joint_angles``,
+    dual tensors under forward-mode AD) for the duration of the call and then restored (so
+    one chain must not run in two threads at once).
+
+    Args:
+        chain: a ``pytorch_kinematics.Chain`` whose index tensors are on the device of
+            ``joint_angles``.
+        joint_angles: (B, n_joints).
+        axes: (n_joints, 3) joint axes, order ``chain.get_joint_parameter_names()``.
+        static_offsets: (num_frames, 4, 4), frames in ``chain.frame_to_idx`` order.
+
+    Returns:
+        (num_frames, B, 4, 4) frame-to-root transforms.
+    """
+    try:
+        saved = chain.axes, chain._static_offsets
+    except AttributeError as exc:
+        from importlib.metadata import version
+
+        raise ModelError(
+            f"pytorch-kinematics {version('pytorch-kinematics')} has no Chain.axes / "
+            f"Chain._static_offsets, which torchfit (checked against {TESTED_PK_VERSION}) "
+            "swaps; see tests/body/test_kinematics_contract.py"
+        ) from exc
+    chain.axes, chain._static_offsets = axes, static_offsets
+    try:
+        return chain.forward_kinematics_tensor(joint_angles, analytical_grad=False)
+    finally:
+        chain.axes, chain._static_offsets = saved
+
+
+def chain_constants(chain) -> tuple[torch.Tensor, torch.Tensor]:
+    """Joint axes and static frame offsets of a pytorch-kinematics chain, from its public API.
+
+    Returns:
+        (n_joints, 3) unit joint axes in ``chain.get_joint_parameter_names()`` order and
+        (num_frames, 4, 4) link offset @ joint offset per frame (identity where absent), in
+        ``chain.frame_to_idx`` order — what the chain's forward pass composes with the joint
+        rotations. Both in the chain's dtype.
+    """
+    names = chain.get_frame_names(exclude_fixed=False)
+    index = chain.get_frame_indices(*names).tolist()
+    eye = torch.eye(4, dtype=chain.dtype, device=chain.device)[None]
+    static: list[torch.Tensor | None] = [None] * len(names)
+    for name, i in zip(names, index, strict=True):
+        frame = chain.find_frame(name)
+        lo = eye if frame.link.offset is None else frame.link.offset.get_matrix()
+        jo = eye if frame.joint.offset is None else frame.joint.offset.get_matrix()
+        static[i] = (lo @ jo).squeeze(0)
+    joints = {j.name: j for j in chain.get_joints()}
+    axes = [joints[n].axis for n in chain.get_joint_parameter_names()]
+    return torch.stack(axes), torch.stack(static)
+
+
+class SkeletonChain(torch.nn.Module):
     """Joint angles (B, Q) -> segment rotations (B, S, 3, 3) and zero-pose offsets.
+
+    Buffers (they follow ``.to(device, dtype)``): ``axes`` (Q, 3) and ``static_offsets``
+    (F, 4, 4), the chain's constants; ``lower`` / ``upper`` (Q,) joint limits from the URDF;
+    ``offsets`` (S, 3) segment origins in their parent's frame; ``frame_indices`` (S,).
 
     Args:
         urdf: URDF text.
@@ -46,50 +129,58 @@ class SkeletonChain:
         source: str = "<urdf>",
         dtype: torch.dtype = torch.float64,
     ) -> None:
+        super().__init__()
         import pytorch_kinematics as pk
 
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                self.chain = pk.build_chain_from_urdf(urdf).to(dtype=dtype)
+                chain = pk.build_chain_from_urdf(urdf)
         except Exception as exc:  # the URDF parser raises assorted types
             raise ModelError(f"{source}: pytorch-kinematics cannot load the URDF: {exc}") from exc
-        self.dof_names: list[str] = list(self.chain.get_joint_parameter_names())
-        frame_names = [self.chain.idx_to_frame[i] for i in range(len(self.chain.idx_to_frame))]
-        self._frame_index = {}
+        self.chain = chain  # its index tensors follow the buffers' device (see _apply)
+        self.dof_names: list[str] = list(chain.get_joint_parameter_names())
+        frame_names = set(chain.get_frame_names(exclude_fixed=False))
+        frames = []
         for seg in segments:
             name = seg if seg in frame_names else f"{seg}_frame"
             if name not in frame_names:
                 raise ModelError(f"{source}: link {seg!r} missing from the kinematic chain")
-            self._frame_index[seg] = frame_names.index(name)
-        self.frame_indices = torch.tensor([self._frame_index[s] for s in segments])
-        lower, upper = self.chain.get_joint_limits()
-        self.lower = torch.as_tensor(np.asarray(lower), dtype=dtype)
-        self.upper = torch.as_tensor(np.asarray(upper), dtype=dtype)
+            frames.append(name)
+        axes, static = chain_constants(chain)
+        lower, upper = chain.get_joint_limits()
+        self.register_buffer("axes", axes.to(dtype), persistent=False)
+        self.register_buffer("static_offsets", static.to(dtype), persistent=False)
+        self.register_buffer("lower", torch.as_tensor(np.asarray(lower), dtype=dtype), False)
+        self.register_buffer("upper", torch.as_tensor(np.asarray(upper), dtype=dtype), False)
+        self.register_buffer("frame_indices", chain.get_frame_indices(*frames).clone(), False)
         self.parents = np.asarray(parents)
-        self.offsets = self._segment_offsets(source, dtype)
+        self.register_buffer("offsets", self._segment_offsets(source), persistent=False)
 
     @property
     def num_dofs(self) -> int:
         return len(self.dof_names)
 
+    def _apply(self, fn, recurse: bool = True):
+        super()._apply(fn, recurse)
+        # pytorch-kinematics' own index tensors (its float constants are not used, see
+        # _forward_kinematics) go where the buffers went
+        if torch.device(self.chain.device) != self.axes.device:
+            self.chain = self.chain.to(device=self.axes.device)
+        return self
+
     def _transforms(self, joint_angles: torch.Tensor) -> torch.Tensor:
-        # (num_frames, B, 4, 4) -> segment frames (B, S, 4, 4)
-        if is_dual(joint_angles):
-            # the chain's constants as zero-tangent duals: mixed dual/plain arithmetic is slow
-            saved = self.chain.axes, self.chain._static_offsets
-            self.chain.axes = lift(saved[0], True)
-            self.chain._static_offsets = lift(saved[1], True)
-            try:
-                all_t = self.chain.forward_kinematics_tensor(joint_angles, analytical_grad=False)
-            finally:
-                self.chain.axes, self.chain._static_offsets = saved
-        else:
-            all_t = self.chain.forward_kinematics_tensor(joint_angles, analytical_grad=False)
+        # (num_frames, B, 4, 4) -> segment frames (B, S, 4, 4); under forward mode the
+        # constants are lifted to zero-tangent duals (mixed dual/plain arithmetic is slow)
+        dual = is_dual(joint_angles)
+        all_t = _forward_kinematics(
+            self.chain, joint_angles, lift(self.axes, dual), lift(self.static_offsets, dual)
+        )
         return all_t[self.frame_indices].transpose(0, 1)
 
-    def _segment_offsets(self, source: str, dtype: torch.dtype) -> torch.Tensor:
+    def _segment_offsets(self, source: str) -> torch.Tensor:
         """(S, 3) origin of each segment in its parent's frame; checks it is pose-independent."""
+        dtype = self.axes.dtype
         probe = torch.zeros(2, self.num_dofs, dtype=dtype)
         gen = torch.Generator().manual_seed(0)
         probe[1] = self.lower + (self.upper - self.lower) * torch.rand(
@@ -122,11 +213,4 @@ class SkeletonChain:
         check_shape("joint_angles", joint_angles, ("B", self.num_dofs))
         return self._transforms(joint_angles)[..., :3, :3]
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None):
-        """Move the chain and its tensors (returns self)."""
-        self.chain = self.chain.to(dtype=dtype, device=device)
-        self.lower = self.lower.to(device=device, dtype=dtype)
-        self.upper = self.upper.to(device=device, dtype=dtype)
-        self.offsets = self.offsets.to(device=device, dtype=dtype)
-        self.frame_indices = self.frame_indices.to(device=device)
-        return self
+    forward = rotations

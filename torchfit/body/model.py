@@ -72,8 +72,13 @@ class BodyOutput:
         return t
 
 
-class BodyModel:
+class BodyModel(torch.nn.Module):
     """A template made posable: stateless forward, batched over subjects.
+
+    A ``torch.nn.Module`` without parameters: the tensors that define the model (mesh
+    vertices, faces, segment offsets, joint axes and limits, the segment-to-group map, ...)
+    are non-persistent buffers, so ``model.to(device, dtype)`` moves and casts it and
+    :attr:`device` / :attr:`dtype` follow.
 
     Args:
         template: a :class:`Template` or a template name / URDF path.
@@ -87,34 +92,65 @@ class BodyModel:
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
     ) -> None:
+        super().__init__()
         self.template = template if isinstance(template, Template) else load_template(template)
         t = self.template
-        self.chain = SkeletonChain(t.urdf, t.segments, t.parents, str(t.urdf_path)).to(
-            device=device, dtype=dtype
-        )
-        self.device, self.dtype = torch.device(device), dtype
+        # built in float64 on the CPU (the segment offsets are measured on the chain), then
+        # moved and cast with everything else at the end
+        self.chain = SkeletonChain(t.urdf, t.segments, t.parents, str(t.urdf_path))
         self.dof_names = self.chain.dof_names
-        self.joint_lower, self.joint_upper = self.chain.lower, self.chain.upper
-        self.offsets = self.chain.offsets
         # mesh vertices padded per segment: (S, Vmax, 3) plus the flat index back to (V,)
         counts = torch.bincount(t.vertex_segment, minlength=t.num_segments)
         vmax = int(counts.max())
-        self._padded = torch.zeros(t.num_segments, vmax, 3, dtype=dtype)
+        padded = torch.zeros(t.num_segments, vmax, 3, dtype=torch.float64)
         slot = torch.cat([torch.arange(int(c)) for c in counts])
-        self._padded[t.vertex_segment, slot] = t.vertices.to(dtype)
-        self._flat_index = (t.vertex_segment * vmax + slot).to(device)
-        self._padded = self._padded.to(device)
-        self._vertices = t.vertices.to(device=device, dtype=dtype)
-        self.faces = t.faces.to(device)
-        # tree levels for the position pass (parents first)
+        padded[t.vertex_segment, slot] = t.vertices.to(torch.float64)
+        self.register_buffer("_padded", padded, persistent=False)
+        self.register_buffer("_flat_index", t.vertex_segment * vmax + slot, persistent=False)
+        self.register_buffer("_vertices", t.vertices.to(torch.float64), persistent=False)
+        self.register_buffer("_vertex_segment", t.vertex_segment.clone(), persistent=False)
+        self.register_buffer("_segment_group", t.segment_group.clone(), persistent=False)
+        self.register_buffer("faces", t.faces.clone(), persistent=False)
+        # tree levels for the position pass (parents first): per level, the segments and their
+        # parents as index buffers ``_level{d}``, ``_level{d}_parents`` and as Python
+        # (segment, parent) pairs for the per-segment loop
         depth = [0] * t.num_segments
         for s, p in enumerate(t.parents):
             depth[s] = 0 if p < 0 else depth[p] + 1
-        self._levels = [
-            torch.tensor([s for s in range(t.num_segments) if depth[s] == d], device=device)
-            for d in range(1, max(depth) + 1)
-        ]
-        self._parents = torch.as_tensor(t.parents, device=device)
+        self._levels: list[list[tuple[int, int]]] = []
+        for d in range(1, max(depth) + 1):
+            pairs = [(s, int(t.parents[s])) for s in range(t.num_segments) if depth[s] == d]
+            self._levels.append(pairs)
+            segs, pars = zip(*pairs, strict=True)
+            self.register_buffer(f"_level{d}", torch.tensor(segs), persistent=False)
+            self.register_buffer(f"_level{d}_parents", torch.tensor(pars), persistent=False)
+        self.to(device=device, dtype=dtype)
+
+    # ----------------------------------------------------------------------------------------
+    @property
+    def dtype(self) -> torch.dtype:
+        """Float dtype of the model's buffers (follows ``.to``)."""
+        return self._padded.dtype
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the model's buffers (follows ``.to``)."""
+        return self._padded.device
+
+    @property
+    def joint_lower(self) -> torch.Tensor:
+        """(Q,) lower joint limits from the URDF, radians."""
+        return self.chain.lower
+
+    @property
+    def joint_upper(self) -> torch.Tensor:
+        """(Q,) upper joint limits from the URDF, radians."""
+        return self.chain.upper
+
+    @property
+    def offsets(self) -> torch.Tensor:
+        """(S, 3) template origin of each segment in its parent segment's frame."""
+        return self.chain.offsets
 
     # ----------------------------------------------------------------------------------------
     @property
@@ -156,7 +192,7 @@ class BodyModel:
             (B, S, 3) per-segment scales.
         """
         check_shape("group_scales", group_scales, ("B", self.num_groups, 3))
-        return group_scales[:, self.template.segment_group.to(group_scales.device)]
+        return group_scales[:, self._segment_group.to(group_scales.device)]
 
     # ----------------------------------------------------------------------------------------
     def forward(
@@ -199,15 +235,15 @@ class BodyModel:
         # positions, level by level: p_c = p_parent + R_parent (σ_parent ⊙ o_c)
         origins = [None] * self.num_segments
         origins[0] = root_translation
-        for level in self._levels:
-            par = self._parents[level]
+        for d, pairs in enumerate(self._levels, 1):
+            level, par = getattr(self, f"_level{d}"), getattr(self, f"_level{d}_parents")
             step = (rot[:, par] @ (scales[:, par] * offsets[level])[..., None])[..., 0]
-            for k, s in enumerate(level.tolist()):
-                origins[s] = origins[int(par[k])] + step[:, k]
+            for k, (s, p) in enumerate(pairs):
+                origins[s] = origins[p] + step[:, k]
         origins_t = torch.stack(origins, dim=1)  # (B, S, 3)
 
         if vertex_index is not None:
-            seg = self.template.vertex_segment.to(vertex_index.device)[vertex_index]
+            seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
             local = scales[:, seg] * lift(self._vertices[vertex_index], dual)  # (B, K, 3)
             vertices = (rot[:, seg] @ local[..., None])[..., 0] + origins_t[:, seg]
             return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
@@ -215,8 +251,6 @@ class BodyModel:
         posed = torch.einsum("bsij,bsvj->bsvi", rot, local) + origins_t[:, :, None, :]
         vertices = posed.reshape(posed.shape[0], -1, 3)[:, self._flat_index]
         return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
-
-    __call__ = forward
 
     def joint_positions(self, out: BodyOutput) -> dict[str, torch.Tensor]:
         """Named joint centres (design.md section 3 names) of a posed body.
