@@ -15,12 +15,12 @@ from template_subjects import make_template_subject
 from torchfit.baseline import minpack_stage, rendered_residual
 from torchfit.body.measure import measure_model
 from torchfit.camera import stack_cameras
-from torchfit.config import FitConfig, SegmentationConfig, StageConfig
+from torchfit.config import FitConfig, StageConfig
 from torchfit.errors import ShapeError
 from torchfit.fitting import SilhouetteFit, person_data_from_masks, scale_selection
+from torchfit.image import SegmentationOptions, fit_background, segment
 from torchfit.io.dataset import load_subject
 from torchfit.io.images import load_frames
-from torchfit.segmentation import fit_background, segment
 from torchfit.solver import LMOptions
 
 
@@ -35,7 +35,7 @@ def subjects(tmp_path_factory, model):
 
 def segmented(subjects) -> torch.Tensor:
     """(B, 6, H, W) silhouettes of the subjects."""
-    cfg = SegmentationConfig(gamma=0.05)
+    cfg = SegmentationOptions(gamma=0.05)
     masks = []
     for s in subjects:
         background, _ = load_frames(s.background)

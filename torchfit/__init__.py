@@ -1,7 +1,7 @@
 """torchfit: fit personal 3D body models to silhouettes from one calibrated camera.
 
 Importing ``torchfit`` loads only the light core (errors, config); the stages live in their
-own modules (``torchfit.camera``, ``torchfit.body``, ``torchfit.segmentation``, …) and
+own modules (``torchfit.camera``, ``torchfit.body``, ``torchfit.image``, …) and
 TensorBoard is imported only by ``torchfit.tb_logging``.
 """
 

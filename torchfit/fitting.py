@@ -32,6 +32,8 @@ from torchfit.body.postures import POSTURES, facing_yaw, nominal_joint_angles
 from torchfit.camera import Camera, camera_centre, project_points
 from torchfit.config import FitConfig, ModelConfig, StageConfig
 from torchfit.errors import ConfigError, ModelError, ShapeError
+from torchfit.image.contours import trace_outer_contour
+from torchfit.image.distance import mask_to_distance_map, sample_distance_map
 from torchfit.model_contour import (
     ContourEndpoints,
     ContourSelection,
@@ -365,17 +367,7 @@ class SilhouetteFit:
     def _sample_rows(self, k: int, rows: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
         """Bilinear D_P of pose index k for each row's subject at (N, n, 2) points."""
         dmap = self.person.distance_maps[k].to(points.dtype)  # (B, H, W)
-        h, w = dmap.shape[-2:]
-        u = points[..., 0].clamp(0, w - 1)
-        v = points[..., 1].clamp(0, h - 1)
-        u0 = u.detach().floor().clamp(max=w - 2)
-        v0 = v.detach().floor().clamp(max=h - 2)
-        fu, fv = u - u0, v - v0
-        u0, v0 = u0.long(), v0.long()
-        r = rows[:, None].expand_as(u0)
-        d00, d01 = dmap[r, v0, u0], dmap[r, v0, u0 + 1]
-        d10, d11 = dmap[r, v0 + 1, u0], dmap[r, v0 + 1, u0 + 1]
-        return (d00 * (1 - fu) + d01 * fu) * (1 - fv) + (d10 * (1 - fu) + d11 * fu) * fv
+        return sample_distance_map(dmap.unsqueeze(1), points, rows)
 
     def _terms(
         self, k: int, rows: torch.Tensor, ends: ContourEndpoints, pix: dict[str, torch.Tensor]
@@ -629,7 +621,7 @@ def person_data_from_masks(
         method: distance transform, ``"chamfer"`` (the paper's 3-4) or ``"euclidean"``.
         stride: keep every ``stride``-th contour pixel.
         uncertain: optional (B, J, H, W) bool, pixels where the silhouette is not to be
-            trusted (:attr:`torchfit.segmentation.SegmentationResult.shadow`): person contour
+            trusted (:attr:`torchfit.image.SegmentationResult.shadow`): person contour
             pixels within ``margin_px`` of one do not count in e_P, and model contour points
             on one do not count in e_M. A silhouette cut short where a foot or shin looked
             like its own shadow then neither pulls the model's feet up nor pushes the model
@@ -640,8 +632,6 @@ def person_data_from_masks(
         :class:`PersonData`; an empty silhouette gives an empty contour and a map of large
         constant distance (that pose then only constrains through e_M).
     """
-    from torchfit.contours import mask_to_distance_map, trace_outer_contour
-
     b, n_pose, h, w = masks.shape
     near = None
     if uncertain is not None:

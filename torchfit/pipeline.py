@@ -34,12 +34,13 @@ from torchfit.camera import Camera, stack_cameras
 from torchfit.config import Config, save_config
 from torchfit.errors import DataError, SegmentationError, TorchfitError
 from torchfit.fitting import PersonData, SilhouetteFit, person_data_from_masks
+from torchfit.image.background import fit_background
+from torchfit.image.segment import segment
 from torchfit.io.dataset import Subject, load_dataset
 from torchfit.io.export import export_mesh, export_urdf, write_json
 from torchfit.io.images import load_frames
 from torchfit.measurements import MEASUREMENT_KEYS
 from torchfit.render import draw_label, draw_polyline, outer_outlines
-from torchfit.segmentation import fit_background, segment
 from torchfit.solver import keep_heap
 
 __all__ = ["SubjectResult", "run", "segment_subject", "person_data", "fit_batch", "write_summary"]
@@ -90,7 +91,7 @@ def segment_subject(
 
     Returns:
         images (6, 3, H, W) in [0, 1], silhouettes (6, H, W) bool and the pixels the shadow
-        test removed (6, H, W) bool (:attr:`torchfit.segmentation.SegmentationResult.shadow`).
+        test removed (6, H, W) bool (:attr:`torchfit.image.SegmentationResult.shadow`).
 
     Raises:
         DataError: invalid subject folder; SegmentationError: no person in a posture image.

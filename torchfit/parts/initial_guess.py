@@ -13,7 +13,8 @@ import numpy as np
 import torch
 
 from torchfit.config import PartsConfig
-from torchfit.parts.decompose import decompose_cactus, fill_holes
+from torchfit.image.morphology import fill_holes
+from torchfit.parts.decompose import decompose_cactus
 from torchfit.parts.errors import PartsError
 from torchfit.parts.rules import Labelling
 
