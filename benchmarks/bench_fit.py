@@ -19,7 +19,6 @@ Prints a markdown table, the machine and the versions.
 from __future__ import annotations
 
 import argparse
-import copy
 import os
 import platform
 import shutil
@@ -34,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torchfit.body.model import BodyModel  # noqa: E402
 from torchfit.camera import stack_cameras  # noqa: E402
-from torchfit.config import load_config  # noqa: E402
+from torchfit.config import load_config, replace_keys  # noqa: E402
 from torchfit.fit import SilhouetteFit, StageOptions, solve_stage  # noqa: E402
 from torchfit.fit.baseline import minpack_stage, rendered_residual  # noqa: E402
 from torchfit.io.dataset import load_dataset  # noqa: E402
@@ -135,11 +134,17 @@ def part2(config, root: Path, names: list[str], batch_sizes: list[int]) -> None:
             for i in range(b):
                 src = root / names[i % len(names)]
                 os.symlink(src, data / f"{i:03d}_{src.name}")
-            cfg = copy.deepcopy(config)
-            cfg.data.root, cfg.data.subjects = str(data), None
-            cfg.run.out, cfg.run.resume = str(Path(tmp) / "run"), False
-            cfg.fit.batch_size = b
-            cfg.output.tensorboard = False
+            cfg = replace_keys(
+                config,
+                {
+                    "data.root": str(data),
+                    "data.subjects": None,
+                    "run.out": str(Path(tmp) / "run"),
+                    "run.resume": False,
+                    "fit.batch_size": b,
+                    "output.tensorboard": False,
+                },
+            )
             t = time.perf_counter()
             results = run(cfg, Path(cfg.run.out))
             wall = time.perf_counter() - t

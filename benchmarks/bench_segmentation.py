@@ -31,15 +31,17 @@ import kornia
 import numpy as np
 import torch
 
-from torchfit.config import SegmentationConfig
-from torchfit.contours import (
+from torchfit.image import (
+    SegmentationOptions,
     chamfer_distance_transform,
+    clean_mask,
     contour_mask,
     distance_map,
     euclidean_distance_transform,
+    fit_background,
+    mahalanobis_distance,
     outer_contours,
 )
-from torchfit.segmentation import clean_mask, fit_background, mahalanobis_distance
 
 W, H = 720, 576
 
@@ -108,7 +110,7 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     print(machine())
     gen = torch.Generator().manual_seed(0)
-    cfg = SegmentationConfig()
+    cfg = SegmentationOptions()
 
     print(f"\n1. whole chain at {W}x{H}, CPU, median of {args.repeats}")
     print(

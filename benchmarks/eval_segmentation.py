@@ -34,9 +34,10 @@ from pathlib import Path
 import kornia
 import torch
 
-from torchfit.config import SegmentationConfig, load_config
+from torchfit.config import load_config
+from torchfit.eval.metrics import cdnet_counts, precision_recall_f
+from torchfit.image import SegmentationOptions, fit_background, segment
 from torchfit.io import load_frames, read_mask
-from torchfit.segmentation import cdnet_counts, fit_background, precision_recall_f, segment
 
 VARIANTS = {
     "hsl default (gamma 0.3, t 4)": {},
@@ -51,7 +52,7 @@ def score(
     model_frames: torch.Tensor,
     names: list[str],
     frames: torch.Tensor,
-    cfg: SegmentationConfig,
+    cfg: SegmentationOptions,
 ) -> tuple[float, float, float]:
     model = fit_background(model_frames, cfg)
     total: dict[str, int] = {}
@@ -64,7 +65,7 @@ def score(
     return precision_recall_f(total)
 
 
-def real_sequences(root: Path, configs: dict[str, SegmentationConfig]) -> None:
+def real_sequences(root: Path, configs: dict[str, SegmentationOptions]) -> None:
     print("1. real footage (SBI 2015), precision / recall / F-measure")
     runs = []
     seq = root / "HallAndMonitor"
@@ -111,7 +112,7 @@ def real_sequences(root: Path, configs: dict[str, SegmentationConfig]) -> None:
     for title, s, bg, idx, nm, fr, base in runs:
         print(f"   {title} ({len(idx)} frames scored, {bg.shape[0]} background frames)")
         variants = [
-            (label, dataclasses.replace(SegmentationConfig(), **base, **extra))
+            (label, dataclasses.replace(SegmentationOptions(), **base, **extra))
             for label, extra in VARIANTS.items()
         ] + [(label, dataclasses.replace(cfg, **base)) for label, cfg in configs.items()]
         for label, cfg in variants:
@@ -150,9 +151,9 @@ def synthetic_shadows() -> None:
     print("   darker  model               pixel test  after clean-up  person recall")
     for k in (0.7, 0.6, 0.5):
         for label, cfg in (
-            ("hsl gamma 0.05", SegmentationConfig(gamma=0.05)),
-            ("hsl gamma 0.3", SegmentationConfig(gamma=0.3)),
-            ("rgb baseline", SegmentationConfig(color_space="rgb")),
+            ("hsl gamma 0.05", SegmentationOptions(gamma=0.05)),
+            ("hsl gamma 0.3", SegmentationOptions(gamma=0.3)),
+            ("rgb baseline", SegmentationOptions(color_space="rgb")),
         ):
             bg, img, person, shadow = shadow_scene(k, torch.Generator().manual_seed(0))
             res = segment(img, fit_background(bg, cfg), cfg)

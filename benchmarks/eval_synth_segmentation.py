@@ -6,7 +6,7 @@
 ``DIR`` holds subject folders written by ``tools/make_subjects.py`` with their evaluation
 masks (``truth_masks/poseK.png`` and ``truth_masks/poseK_shadow.png``; add them to older
 subjects with ``--masks-only``). ``--config`` is a full run config (its ``segmentation``
-section is used; default: the library's ``SegmentationConfig()``); ``--set`` overrides take
+section is used; default: the library's ``SegmentationOptions()``); ``--set`` overrides take
 ``segmentation.KEY=VALUE`` or just ``KEY=VALUE``.
 
 Per subject and posture image it prints:
@@ -16,7 +16,7 @@ Per subject and posture image it prints:
 - ``shadow_bg``: the share of the true cast-shadow pixels (outside the person) that the mask
   keeps as background (``-`` when the image has none);
 - ``cd``: the mean distance in pixels between the predicted and the true **outer** contours
-  (what the fit sees, :func:`torchfit.contours.contour_mask`), symmetric: the mean of
+  (what the fit sees, :func:`torchfit.image.contour_mask`), symmetric: the mean of
   "predicted contour pixel to nearest true contour pixel" and the reverse, each from an exact
   Euclidean distance transform; ``cd_max`` the 95th percentile of both directions.
 
@@ -28,7 +28,6 @@ negatives (person missed) blue, and the true shadow outlined in yellow.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import platform
 import sys
 import time
@@ -38,10 +37,9 @@ import cv2
 import numpy as np
 import torch
 
-from torchfit.config import Config, load_config
-from torchfit.contours import contour_mask
+from torchfit.config import Config, config_to_dict, load_config
+from torchfit.image import contour_mask, fit_background, segment
 from torchfit.io import load_frames, read_mask
-from torchfit.segmentation import fit_background, segment
 
 
 def _contour_distance(pred: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
@@ -151,7 +149,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(f"no subject with truth_masks/ in {root} (make_subjects.py --masks-only)")
     print(f"# {root}  {len(folders)} subjects  python {platform.python_version()}")
     print(f"# torch {torch.__version__}, opencv {cv2.__version__}")
-    print("# segmentation:", dataclasses.asdict(cfg))
+    print("# segmentation:", config_to_dict(cfg))
     start = time.perf_counter()
     rows: list[dict] = []
     overlays = Path(args.overlays) if args.overlays else None

@@ -77,11 +77,7 @@ def test_each_dependency_has_one_home(library, home):
 
 
 def test_no_library_module_is_over_the_limit():
-    long = {
-        m: n
-        for m, p in MODULES.items()
-        if (n := len(p.read_text().splitlines())) > MAX_LINES and not m.startswith("torchfit.synth")
-    }
+    long = {m: n for m, p in MODULES.items() if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert long == {}
 
 
@@ -93,3 +89,50 @@ def test_import_torchfit_stays_light():
         *(f"torchfit.errors.{n}" for n in ("ModelError", "SegmentationError", "ShapeError")),
         "torchfit.errors.TorchfitError",
     }
+
+
+#: ARCHITECTURE.md's table: what each package may import (besides torchfit.errors).
+ALLOWED = {
+    "status": set(),
+    "camera": set(),
+    "measurements": set(),
+    "_dual": set(),
+    "solver": set(),
+    "io": {"camera", "measurements"},
+    "image": set(),
+    "body": {"io", "measurements", "_dual"},
+    "parts": {"camera", "image"},
+    "viz": {"body", "camera", "parts"},
+    "fit": {"body", "camera", "image", "parts", "solver", "viz", "_dual"},
+    "eval": {"io", "measurements", "status"},
+    "synth": {"camera", "io", "measurements", "viz"},
+    "config": {"fit", "image", "parts", "solver"},
+    "pipeline": {
+        "body",
+        "camera",
+        "config",
+        "fit",
+        "image",
+        "io",
+        "measurements",
+        "parts",
+        "solver",
+        "status",
+        "viz",
+        "_dual",
+    },
+}
+
+
+def test_packages_import_only_what_the_architecture_allows():
+    seen: dict[str, set[str]] = {}
+    for name, path in MODULES.items():
+        parts = name.split(".")
+        if len(parts) < 2:
+            continue
+        src = parts[1]
+        for i in _imports(path):
+            if i.startswith("torchfit.") and (dst := i.split(".")[1]) not in (src, "errors"):
+                seen.setdefault(src, set()).add(dst)
+    extra = {p: sorted(d - ALLOWED.get(p, set())) for p, d in seen.items()}
+    assert {p: d for p, d in extra.items() if d} == {}

@@ -73,3 +73,52 @@ def test_saved_config_is_plain_yaml(tmp_path):
     save_config(cfg, tmp_path / "c.yaml")
     data = yaml.safe_load((tmp_path / "c.yaml").read_text())
     assert data["fit"]["poses"] == [1, 2]
+
+
+def test_errors_list_the_valid_keys_and_choices(tmp_path):
+    path = write(tmp_path, "solver:\n  maxiter: 3\n")
+    with pytest.raises(ConfigError, match=r"valid keys under 'solver': accel_ratio, .*jacobian"):
+        load_config(path)
+    with pytest.raises(
+        ConfigError,
+        match=r"key 'solver.jacobian' must be one of \['autograd', 'forward', 'reverse', "
+        r"'numeric'\], got 'fwd'",
+    ):
+        load_config(None, ["solver.jacobian=fwd"])
+    with pytest.raises(ConfigError, match=r"'fit.method' must be one of \['autograd_lm', 'minpack"):
+        load_config(None, ["fit.method=numeric"])
+    with pytest.raises(ConfigError, match=r"key 'segmentation.shadow_ratio' expects a list of 2"):
+        load_config(None, ["segmentation.shadow_ratio=[0.5]"])
+    with pytest.raises(ConfigError, match=r"key 'fit': fit.poses: expected distinct postures"):
+        load_config(None, ["fit.poses=[1, 1]"])
+    with pytest.raises(ConfigError, match=r"key 'solver': LMOptions.max_iter: expected >= 1"):
+        load_config(None, ["solver.max_iter=0"])
+
+
+def test_sections_are_the_numeric_options(tmp_path):
+    from torchfit.fit import FitOptions, StageOptions
+    from torchfit.image import SegmentationOptions
+    from torchfit.parts import PartsOptions
+    from torchfit.solver import LMOptions
+
+    cfg = load_config(None, ["solver.jacobian=forward", "solver.max_iter=9"])
+    assert isinstance(cfg.fit, FitOptions) and isinstance(cfg.fit.stages[0], StageOptions)
+    assert isinstance(cfg.segmentation, SegmentationOptions)
+    assert isinstance(cfg.parts, PartsOptions)
+    assert cfg.solver.jacobian == "forward"
+    assert cfg.solver.lm_options(4) == LMOptions(max_iter=4)  # every other field as LMOptions'
+    assert type(cfg.solver.lm_options()) is LMOptions and cfg.solver.lm_options().max_iter == 9
+
+
+def test_configs_are_frozen_and_replaced_by_key():
+    import dataclasses
+
+    from torchfit.config import replace_keys
+
+    cfg = load_config(None)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.run.resume = False
+    new = replace_keys(cfg, {"run.resume": False, "fit.batch_size": 7})
+    assert (new.run.resume, new.fit.batch_size, cfg.run.resume) == (False, 7, True)
+    with pytest.raises(ConfigError, match="unknown key 'run.nope'"):
+        replace_keys(cfg, {"run.nope": 1})

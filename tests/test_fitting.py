@@ -14,7 +14,6 @@ from template_subjects import make_template_subject
 
 from torchfit.body.measure import measure_model
 from torchfit.camera import stack_cameras
-from torchfit.config import SegmentationConfig
 from torchfit.errors import ShapeError
 from torchfit.fit import (
     FitOptions,
@@ -24,9 +23,9 @@ from torchfit.fit import (
     solve_stage,
 )
 from torchfit.fit.baseline import minpack_stage, rendered_residual
+from torchfit.image import SegmentationOptions, fit_background, segment
 from torchfit.io.dataset import load_subject
 from torchfit.io.images import load_frames
-from torchfit.segmentation import fit_background, segment
 from torchfit.solver import LMOptions
 
 
@@ -41,7 +40,7 @@ def subjects(tmp_path_factory, model):
 
 def segmented(subjects) -> torch.Tensor:
     """(B, 6, H, W) silhouettes of the subjects."""
-    cfg = SegmentationConfig(gamma=0.05)
+    cfg = SegmentationOptions(gamma=0.05)
     masks = []
     for s in subjects:
         background, _ = load_frames(s.background)
@@ -200,3 +199,30 @@ def test_uncertain_must_match_the_masks(model, subjects):
     cams = problem(model, subjects[0][:1]).person.camera
     with pytest.raises(ShapeError, match=r"uncertain: expected the shape of masks"):
         person_data_from_masks(masks, cams, uncertain=masks[:, :3])
+
+
+@pytest.mark.parametrize("jacobian", ["forward", "reverse", "numeric"])
+def test_every_jacobian_choice_is_honoured(model, subjects, jacobian):
+    """``solver.jacobian``: the solver's generic Jacobians of the whole residual give the
+    fit's own Jacobian (forward x reverse at the contour), so a stage takes the same steps.
+    One posture and every 10th contour pixel keep the generic reverse mode (one residual
+    evaluation per residual entry) quick."""
+    tall = subjects[0][1:]
+    cams = stack_cameras([s.camera for s in tall])
+    person = person_data_from_masks(segmented(tall)[:, :1], cams, stride=10)
+    fit = SilhouetteFit(model, person, FitOptions(poses=(1,)))
+    stage = StageOptions(name="legs", scales=("legs",), joints=False, root=True)
+    options = LMOptions(max_iter=6)  # the first three trial steps are rejected here
+    x0 = fit.initial_params()
+    x_own, own = solve_stage(fit, x0, stage, options, "autograd")
+    x_gen, gen = solve_stage(fit, x0, stage, options, jacobian)
+    assert float((x_own - x0).abs().max()) > 0.01  # the stage moved: the comparison means something
+    tol = 1e-9 if jacobian != "numeric" else 2e-3
+    torch.testing.assert_close(x_gen, x_own, rtol=0, atol=tol)
+    assert float(gen.cost[0]) < 0.5 * float((fit.residual(x0) ** 2).sum())
+
+
+def test_unknown_jacobian_is_named(model, subjects):
+    fit = problem(model, subjects[0][:1])
+    with pytest.raises(ValueError, match=r"jacobian: expected one of \['autograd', 'forward'"):
+        solve_stage(fit, fit.initial_params(), StageOptions(), LMOptions(max_iter=1), "fwd")

@@ -17,6 +17,7 @@ import pytest
 import yaml
 
 from torchfit.errors import DataError
+from torchfit.eval.plot import plot_fitted_vs_true
 from torchfit.eval.report import (
     PAPER_TABLE1_PCT,
     REPORT_KEYS,
@@ -25,7 +26,6 @@ from torchfit.eval.report import (
     collect_truths,
     describe_method,
     format_markdown,
-    plot_fitted_vs_true,
     read_run,
     read_truth,
     summarize,

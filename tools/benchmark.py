@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import yaml  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from torchfit.config import replace_keys  # noqa: E402
 from torchfit.config.cli import add_config_args, config_from_args, run_folder  # noqa: E402
 from torchfit.errors import DataError, TorchfitError  # noqa: E402
 from torchfit.eval.report import (  # noqa: E402
@@ -77,10 +78,9 @@ def _truths(config) -> tuple[dict[str, dict[str, float]], list[str]]:
 
 
 def _fit(args: argparse.Namespace) -> _Run:
-    config = config_from_args(args)
-    config.run.resume = args.resume
+    config = replace_keys(config_from_args(args), {"run.resume": args.resume})
     truths, notes = _truths(config)
-    config.data.subjects = list(truths)
+    config = replace_keys(config, {"data.subjects": tuple(truths)})
     run_dir = run_folder(config)
     from torchfit.pipeline import run  # imports the body model stack
 

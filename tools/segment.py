@@ -35,8 +35,9 @@ from tqdm import tqdm
 
 from torchfit.config import Config, load_config
 from torchfit.errors import SegmentationError, TorchfitError
+from torchfit.eval.metrics import cdnet_counts, precision_recall_f
+from torchfit.image import fit_background, segment
 from torchfit.io import list_images, load_frames, read_image, read_mask, write_mask
-from torchfit.segmentation import cdnet_counts, fit_background, precision_recall_f, segment
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

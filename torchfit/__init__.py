@@ -1,8 +1,8 @@
 """torchfit: fit personal 3D body models to silhouettes from one calibrated camera.
 
-Importing ``torchfit`` loads only the light core (errors, config); the stages live in their
-own modules (``torchfit.camera``, ``torchfit.body``, ``torchfit.segmentation``, …) and
-TensorBoard is imported only by ``torchfit.pipeline.tensorboard``.
+Importing ``torchfit`` loads only the light core (errors); the stages live in their
+own packages (``torchfit.image``, ``torchfit.body``, ``torchfit.fit``, ``torchfit.pipeline``,
+…; see ARCHITECTURE.md) and TensorBoard is imported only by ``torchfit.pipeline.tensorboard``.
 """
 
 from torchfit.errors import (

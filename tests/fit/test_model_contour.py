@@ -1,4 +1,4 @@
-"""Tests of torchfit.model_contour: edge samples, the contour choice, point-to-edge distances.
+"""Tests of torchfit.fit.model_contour: edge samples, the contour choice, point-to-edge distances.
 
 References: hand-enumerated edges of tiny meshes (two triangles, a tetrahedron); the outline
 of the rendered mask computed here with numpy (mask pixels with a 4-neighbour outside) and a
@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from torchfit.errors import ShapeError
-from torchfit.model_contour import (
+from torchfit.fit.model_contour import (
     ContourSelection,
     EdgeSampler,
     contour_endpoints,

@@ -1,4 +1,4 @@
-"""Tests of torchfit.residuals (e_P, e_M, e_B).
+"""Tests of torchfit.fit.residuals (e_P, e_M, e_B).
 
 Reference: the paper's formulas evaluated by hand for small cases and by a naive Python loop
 over rows and contour points for random batches; gradients by ``torch.autograd.gradcheck``
@@ -12,7 +12,7 @@ import math
 import pytest
 import torch
 
-from torchfit.residuals import NO_CONTOUR_PENALTY, barrier, model_to_person, person_to_model
+from torchfit.fit.residuals import NO_CONTOUR_PENALTY, barrier, model_to_person, person_to_model
 
 
 def _loop_person_to_model(distances: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:

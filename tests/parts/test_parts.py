@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchfit.camera import Camera, look_at, project_points
-from torchfit.contours import trace_outer_contour
+from torchfit.image import trace_outer_contour
 from torchfit.parts import (
     PartsError,
     curvature_extrema,

@@ -159,6 +159,7 @@ class SkeletonChain(torch.nn.Module):
 
     @property
     def num_dofs(self) -> int:
+        """Q, the number of joint DOFs."""
         return len(self.dof_names)
 
     def _apply(self, fn, recurse: bool = True):

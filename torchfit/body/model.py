@@ -155,14 +155,17 @@ class BodyModel(torch.nn.Module):
     # ----------------------------------------------------------------------------------------
     @property
     def num_segments(self) -> int:
+        """S, the number of segments."""
         return self.template.num_segments
 
     @property
     def num_dofs(self) -> int:
+        """Q, the number of joint DOFs."""
         return len(self.dof_names)
 
     @property
     def num_groups(self) -> int:
+        """G, the number of scale groups."""
         return len(self.template.scale_groups)
 
     def dof_index(self, name: str) -> int:

@@ -73,6 +73,7 @@ class Template:
 
     @property
     def num_segments(self) -> int:
+        """S, the number of segments."""
         return len(self.segments)
 
     def segment_index(self, name: str) -> int:

@@ -8,6 +8,7 @@ from torchfit.config.loader import (
     config_to_dict,
     load_config,
     parse_yaml,
+    replace_keys,
     save_config,
 )
 from torchfit.config.schema import (
@@ -40,4 +41,5 @@ __all__ = [
     "apply_overrides",
     "save_config",
     "parse_yaml",
+    "replace_keys",
 ]

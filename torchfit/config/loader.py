@@ -32,6 +32,7 @@ __all__ = [
     "apply_overrides",
     "save_config",
     "parse_yaml",
+    "replace_keys",
 ]
 
 
@@ -269,6 +270,28 @@ def load_config(
         apply_overrides(data, overrides)
         source = f"{source} (with --set overrides)"
     return config_from_dict(data, source, schema)
+
+
+def replace_keys(config: Any, values: dict[str, Any]) -> Any:
+    """A copy of a (frozen) config with dotted keys replaced, e.g.
+    ``replace_keys(config, {"run.resume": False, "fit.batch_size": 8})``. The values are
+    taken as given (not checked against the schema).
+
+    Raises:
+        ConfigError: a key that is not in the config.
+    """
+    for key, value in values.items():
+        config = _replace(config, key.split("."), value, key)
+    return config
+
+
+def _replace(node: Any, parts: list[str], value: Any, key: str) -> Any:
+    if not dataclasses.is_dataclass(node) or parts[0] not in {
+        f.name for f in dataclasses.fields(node)
+    }:
+        raise ConfigError(f"replace_keys: unknown key {key!r}")
+    child = value if len(parts) == 1 else _replace(getattr(node, parts[0]), parts[1:], value, key)
+    return dataclasses.replace(node, **{parts[0]: child})
 
 
 def save_config(config: Any, path: str | Path) -> None:

@@ -15,6 +15,7 @@ from typing import Literal
 
 from torchfit.fit.problem import FitOptions
 from torchfit.fit.stages import StageOptions
+from torchfit.image.segment import SegmentationOptions
 from torchfit.parts.options import PartsOptions
 from torchfit.solver.options import LMOptions
 
@@ -90,41 +91,8 @@ class ModelConfig:
     scale_max: float = 1.9
 
 
-@dataclass(frozen=True)
-class SegmentationConfig:
-    """HSL Mahalanobis background subtraction and clean-up (first paper, section 4)."""
-
-    threshold: float = 4.0  # Mahalanobis distance above which a pixel is the person
-    gamma: float = 0.3  # weight of lightness against the hue/saturation disc, in [0, 1]
-    color_space: Literal["hsl", "rgb"] = "hsl"  # "rgb" is the baseline, for comparisons only
-    regularization: float = 1.0  # variance added to the covariance diagonal, (8-bit levels)^2
-    min_background_frames: int = 5
-    background: Literal["frames", "temporal_median"] = "frames"
-    open_kernel: int = 3
-    close_kernel: int = 7
-    largest_region: bool = True  # keep only the largest region (one person); false keeps all
-    fill_holes: bool = True
-    # largest hole filled, as a fraction of the silhouette's area (holes included); None fills
-    # every hole. A small value keeps the gap between the legs when a shadow closes it below
-    max_hole_area: float | None = None
-    # explicit cast-shadow test (the first paper's suggested improvement, its reference [4]):
-    # a pixel darker than the background by an RGB ratio in shadow_ratio, with a colour
-    # direction within shadow_chroma (radians) of the background's, is background
-    shadow_test: bool = False
-    shadow_ratio: tuple[float, float] = (0.5, 0.95)
-    shadow_chroma: float = 0.05
-    # the shadow test applies only to the lowest shadow_band fraction of the foreground's
-    # height (cast shadows lie on the floor around the feet; grey clothing on a grey wall
-    # passes the colour test too); 1 applies it everywhere
-    shadow_band: float = 1.0
-    # keep as person the shadow-like pixels with person both above and below them in their
-    # image column (a grey shin between the knee and a dark shoe), which a cast shadow on the
-    # floor beside or in front of the feet never has
-    shadow_bridge: bool = False
-    distance: Literal["chamfer", "euclidean"] = "chamfer"
-    # run the per-pixel colour test through torch.compile (needs a C++ compiler on CPU; about a
-    # minute to compile the first time, cached afterwards; several times faster per frame)
-    compile: bool = False
+#: The ``segmentation`` section (the image side's own options).
+SegmentationConfig = SegmentationOptions
 
 
 @dataclass(frozen=True)

@@ -14,22 +14,30 @@ the subjects' statuses: ``template`` means the template's measurements at the no
 from __future__ import annotations
 
 import csv
-import json
 import logging
-import math
 import statistics
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
-
-import cv2
-import numpy as np
 
 from torchfit.errors import DataError
-from torchfit.io.dataset import validate_truth
-from torchfit.measurements import MEASUREMENT_KEYS
+from torchfit.eval.plot import plot_fitted_vs_true
+from torchfit.eval.records import (
+    FAILED,
+    LABELS,
+    PAPER_TABLE1_PCT,
+    REPORT_KEYS,
+    TEMPLATE,
+    MeasurementStats,
+    ReportRow,
+    ReportSummary,
+    ResultLike,
+    SubjectOutcome,
+    _fmt,
+    collect_truths,
+    read_run,
+    read_truth,
+)
 
 __all__ = [
     "REPORT_KEYS",
@@ -51,221 +59,10 @@ __all__ = [
     "format_markdown",
     "write_csv",
     "write_summary_csv",
-    "plot_fitted_vs_true",
     "write_report",
 ]
 
 log = logging.getLogger(__name__)
-
-#: Measurements of the report, in order (the first paper's Table 1 and the segment lengths).
-REPORT_KEYS: tuple[str, ...] = MEASUREMENT_KEYS[: MEASUREMENT_KEYS.index("shoulder_width_m") + 1]
-#: Human-readable names of :data:`REPORT_KEYS`.
-LABELS: dict[str, str] = {
-    "height_m": "height",
-    "arm_span_m": "arm span",
-    "lower_leg_m": "lower leg",
-    "thigh_m": "thigh",
-    "upper_arm_m": "upper arm",
-    "forearm_m": "forearm",
-    "shoulder_width_m": "shoulder width",
-}
-#: Mean absolute % errors of the first paper's Table 1, for comparison.
-PAPER_TABLE1_PCT: dict[str, float] = {"height_m": 2.1, "arm_span_m": 1.6, "lower_leg_m": 7.6}
-#: Status of a subject that could not be processed (``torchfit.pipeline``).
-FAILED = "failed"
-#: Status of the template's measurements without a fit (``torchfit.pipeline``).
-TEMPLATE = "template"
-
-
-class ResultLike(Protocol):
-    """What the report needs of one subject's result (``torchfit.pipeline.SubjectResult``)."""
-
-    name: str
-    status: str
-    message: str
-    measurements: dict[str, float]
-    seconds: float
-
-
-@dataclass
-class SubjectOutcome:
-    """One subject's result read back from a run folder (a :class:`ResultLike`)."""
-
-    name: str
-    status: str
-    message: str = ""
-    measurements: dict[str, float] = field(default_factory=dict)
-    seconds: float = 0.0
-
-
-@dataclass(frozen=True)
-class ReportRow:
-    """One subject of the report: true and fitted values (metres), status and time.
-
-    ``seconds`` is None where the run did not time the subject (e.g. resumed from disk).
-    """
-
-    subject: str
-    status: str
-    message: str
-    seconds: float | None
-    truth: Mapping[str, float]
-    fitted: Mapping[str, float]
-
-    @property
-    def failed(self) -> bool:
-        """True for a failed subject (excluded from the means)."""
-        return self.status == FAILED
-
-    def error_pct(self, key: str) -> float | None:
-        """Signed error ``100 (fitted - true) / true`` of ``key`` in %, None if unknown."""
-        true, fit = self.truth.get(key), self.fitted.get(key)
-        if self.failed or true is None or fit is None:
-            return None
-        return 100.0 * (fit - true) / true
-
-
-@dataclass(frozen=True)
-class MeasurementStats:
-    """Errors of one measurement over the subjects that have it (failed ones excluded)."""
-
-    key: str
-    n: int
-    mean_abs_pct: float | None
-    mean_signed_pct: float | None
-    max_abs_pct: float | None
-
-
-@dataclass(frozen=True)
-class ReportSummary:
-    """What the report says about the whole run."""
-
-    method: str
-    statuses: dict[str, int]
-    n_subjects: int
-    n_failed: int
-    stats: dict[str, MeasurementStats]
-    mean_seconds: float | None
-    median_seconds: float | None
-    n_timed: int
-
-
-# ------------------------------------------------------------------------------------------
-# Reading
-
-
-def _read_json(path: Path, what: str) -> object:
-    if not path.is_file():
-        raise DataError(f"{path}: {what} not found")
-    try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"{path}: cannot read {what}: {exc}") from exc
-
-
-def read_truth(path: str | Path) -> dict[str, float]:
-    """The measurements of one ``truth.json`` (metres; ``joints_world`` is left out).
-
-    Raises:
-        DataError: the file is missing, not JSON, or not a valid truth file (message names it).
-    """
-    path = Path(path)
-    data = _read_json(path, "truth.json")
-    problems = validate_truth(data, str(path))
-    if problems:
-        raise DataError("; ".join(problems))
-    return {k: float(v) for k, v in dict(data).items() if k != "joints_world"}
-
-
-def collect_truths(
-    folders: Mapping[str, str | Path],
-) -> tuple[dict[str, dict[str, float]], list[str]]:
-    """Ground truth of every subject folder that has a valid ``truth.json``.
-
-    Args:
-        folders: subject name -> subject folder.
-
-    Returns:
-        ``(truths, notes)``: name -> measurements for the subjects with ground truth, and one
-        note per skipped subject (no ``truth.json``, or an invalid one) saying why.
-    """
-    truths: dict[str, dict[str, float]] = {}
-    notes: list[str] = []
-    for name, folder in folders.items():
-        path = Path(folder) / "truth.json"
-        if not path.is_file():
-            notes.append(f"{name}: skipped, no truth.json in {folder}")
-            continue
-        try:
-            truths[name] = read_truth(path)
-        except DataError as exc:
-            notes.append(f"{name}: skipped, {exc}")
-    return truths, notes
-
-
-def _float_or_none(text: str | None) -> float | None:
-    if text is None or text.strip() == "":
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        return None
-    return value if math.isfinite(value) else None
-
-
-def read_run(run_dir: str | Path) -> list[SubjectOutcome]:
-    """Read a run folder: statuses and times from ``summary.csv``, values from
-    ``<subject>/measurements.json``.
-
-    A subject whose status is not failed but whose ``measurements.json`` is missing or
-    unreadable comes back failed, with a message naming the file.
-
-    Raises:
-        DataError: ``run_dir`` or its ``summary.csv`` is missing, unreadable, lacks the
-            ``subject`` / ``status`` columns or has no rows.
-    """
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise DataError(f"run folder not found: {run_dir}")
-    path = run_dir / "summary.csv"
-    if not path.is_file():
-        raise DataError(f"{path}: summary.csv not found (is {run_dir} a torchfit run folder?)")
-    try:
-        with path.open(newline="") as f:
-            reader = csv.DictReader(f)
-            rows = list(reader)
-            columns = reader.fieldnames or []
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise DataError(f"{path}: cannot read summary.csv: {exc}") from exc
-    missing = [c for c in ("subject", "status") if c not in columns]
-    if missing:
-        raise DataError(f"{path}: missing columns {missing} (found {columns})")
-    if not rows:
-        raise DataError(f"{path}: no subjects in summary.csv")
-    outcomes = []
-    for row in rows:
-        name, status = row["subject"], row["status"]
-        seconds = _float_or_none(row.get("seconds")) or 0.0
-        outcome = SubjectOutcome(name, status, row.get("message") or "", {}, seconds)
-        if status != FAILED:
-            try:
-                data = _read_json(run_dir / name / "measurements.json", "measurements.json")
-                if not isinstance(data, dict):
-                    raise DataError(f"{run_dir / name / 'measurements.json'}: not a JSON object")
-            except DataError as exc:
-                log.warning("%s", exc)
-                outcome.status, outcome.message = FAILED, str(exc)
-            else:
-                outcome.measurements = {
-                    k: float(v)
-                    for k, v in data.items()
-                    if k in REPORT_KEYS
-                    and isinstance(v, (int, float))
-                    and not isinstance(v, bool)
-                    and math.isfinite(v)
-                }
-        outcomes.append(outcome)
-    return outcomes
 
 
 # ------------------------------------------------------------------------------------------
@@ -333,10 +130,6 @@ def summarize(rows: Sequence[ReportRow]) -> ReportSummary:
         median_seconds=statistics.median(times) if times else None,
         n_timed=len(times),
     )
-
-
-def _fmt(value: float | None, spec: str) -> str:
-    return "—" if value is None else format(value, spec)
 
 
 def format_markdown(
@@ -476,119 +269,6 @@ def write_summary_csv(summary: ReportSummary, path: str | Path) -> None:
                 [key, summary.method, st.n, num(st.mean_abs_pct), num(st.mean_signed_pct)]
                 + [num(st.max_abs_pct), num(PAPER_TABLE1_PCT.get(key))]
             )
-
-
-# ------------------------------------------------------------------------------------------
-# Plot (OpenCV drawing; BGR colours)
-
-_INK, _GRID, _IDENTITY, _POINT = (40, 40, 40), (225, 225, 225), (120, 120, 120), (200, 90, 20)
-_FONT = cv2.FONT_HERSHEY_SIMPLEX
-
-
-def _nice_ticks(lo: float, hi: float, target: int = 6) -> list[float]:
-    raw = (hi - lo) / max(target, 1)
-    mag = 10.0 ** math.floor(math.log10(raw))
-    step = next(m * mag for m in (1, 2, 5, 10) if m * mag >= raw)
-    first = math.ceil(lo / step - 1e-9) * step
-    return [first + i * step for i in range(int((hi - first) / step + 1e-9) + 1)]
-
-
-def _text(
-    img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.45, thick: int = 1
-) -> None:
-    cv2.putText(img, text, org, _FONT, scale, _INK, thick, cv2.LINE_AA)
-
-
-def _text_centered(img: np.ndarray, text: str, cx: int, y: int, scale: float = 0.45) -> None:
-    (w, _), _ = cv2.getTextSize(text, _FONT, scale, 1)
-    _text(img, text, (cx - w // 2, y), scale)
-
-
-def _panel(key: str, rows: Sequence[ReportRow], stats: MeasurementStats, size: int) -> np.ndarray:
-    img = np.full((size, size, 3), 255, np.uint8)
-    left, right, top, bottom = 70, 18, 44, 56
-    x0, x1, y0, y1 = left, size - right, top, size - bottom
-    title = f"{LABELS[key]}: mean abs. error {_fmt(stats.mean_abs_pct, '.1f')} % (n={stats.n})"
-    _text_centered(img, title, size // 2, 24, 0.5)
-    pairs = [
-        (r.truth[key], r.fitted[key])
-        for r in rows
-        if not r.failed and key in r.truth and key in r.fitted
-    ]
-    cv2.rectangle(img, (x0, y0), (x1, y1), _INK, 1)
-    if not pairs:
-        _text_centered(img, "no data", (x0 + x1) // 2, (y0 + y1) // 2)
-        return img
-    values = [v for p in pairs for v in p]
-    lo, hi = min(values), max(values)
-    pad = max(0.06 * (hi - lo), 0.01 * max(abs(hi), 1e-3))
-    lo, hi = lo - pad, hi + pad
-
-    def px(v: float) -> int:
-        return int(round(x0 + (v - lo) / (hi - lo) * (x1 - x0)))
-
-    def py(v: float) -> int:
-        return int(round(y1 - (v - lo) / (hi - lo) * (y1 - y0)))
-
-    ticks = _nice_ticks(lo, hi)
-    step = ticks[1] - ticks[0] if len(ticks) > 1 else hi - lo
-    decimals = min(max(math.ceil(-math.log10(step) - 1e-9), 1), 3)
-    for t in ticks:
-        label = f"{t:.{decimals}f}"
-        cv2.line(img, (px(t), y0 + 1), (px(t), y1 - 1), _GRID, 1)
-        cv2.line(img, (x0 + 1, py(t)), (x1 - 1, py(t)), _GRID, 1)
-        cv2.line(img, (px(t), y1), (px(t), y1 + 5), _INK, 1)
-        cv2.line(img, (x0 - 5, py(t)), (x0, py(t)), _INK, 1)
-        _text_centered(img, label, px(t), y1 + 20, 0.4)
-        (w, h), _ = cv2.getTextSize(label, _FONT, 0.4, 1)
-        _text(img, label, (x0 - 8 - w, py(t) + h // 2), 0.4)
-    cv2.rectangle(img, (x0, y0), (x1, y1), _INK, 1)
-    cv2.line(img, (px(lo), py(lo)), (px(hi), py(hi)), _IDENTITY, 1, cv2.LINE_AA)
-    for true, fit in pairs:
-        cv2.circle(img, (px(true), py(fit)), 5, _POINT, -1, cv2.LINE_AA)
-        cv2.circle(img, (px(true), py(fit)), 5, _INK, 1, cv2.LINE_AA)
-    _text_centered(img, "true (m)", (x0 + x1) // 2, size - 12, 0.45)
-    label = np.full((22, y1 - y0, 3), 255, np.uint8)
-    _text_centered(label, "fitted (m)", label.shape[1] // 2, 16, 0.45)
-    img[y0:y1, 4:26] = cv2.rotate(label, cv2.ROTATE_90_COUNTERCLOCKWISE)
-    return img
-
-
-def plot_fitted_vs_true(
-    rows: Sequence[ReportRow], summary: ReportSummary, path: str | Path, panel_size: int = 420
-) -> np.ndarray:
-    """Write a PNG of fitted against true values, one panel per measurement.
-
-    Each panel has ticks in metres, the identity line (grey) and one dot per non-failed
-    subject; the last panel states the method and the subject counts.
-
-    Returns:
-        (H, W, 3) uint8 BGR image, as written.
-
-    Raises:
-        DataError: the PNG cannot be written.
-    """
-    panels = [_panel(k, rows, summary.stats[k], panel_size) for k in REPORT_KEYS]
-    legend = np.full((panel_size, panel_size, 3), 255, np.uint8)
-    lines = [
-        "fitted against true",
-        f"method: {summary.method}",
-        f"subjects: {summary.n_subjects - summary.n_failed} shown, {summary.n_failed} failed",
-        "grey line: fitted = true",
-    ]
-    if summary.method.startswith(TEMPLATE):
-        lines.append("BASELINE: template measurements, no fit")
-    for i, line in enumerate(lines):
-        _text(legend, line, (20, 60 + 30 * i), 0.5, thick=2 if i == 0 else 1)
-    cv2.circle(legend, (30, 60 + 30 * len(lines) + 10), 5, _POINT, -1, cv2.LINE_AA)
-    _text(legend, "one subject", (45, 60 + 30 * len(lines) + 15), 0.5)
-    panels.append(legend)
-    while len(panels) % 4:
-        panels.append(np.full_like(legend, 255))
-    grid = np.vstack([np.hstack(panels[i : i + 4]) for i in range(0, len(panels), 4)])
-    if not cv2.imwrite(str(path), grid):
-        raise DataError(f"{path}: cannot write the PNG")
-    return grid
 
 
 def write_report(

@@ -16,10 +16,12 @@ from __future__ import annotations
 
 import torch
 
-from torchfit.contours import distance_map, trace_outer_contour
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.fit.residuals import NO_CONTOUR_PENALTY, person_to_model
 from torchfit.fit.stages import StageOptions
+from torchfit.image.contours import trace_outer_contour
+from torchfit.image.distance import distance_map
+from torchfit.image.morphology import largest_component
 from torchfit.solver import LMOptions
 from torchfit.viz.raster import render_silhouette
 
@@ -32,14 +34,7 @@ DEFAULT_EPSFCN = 1e-4
 
 def _outer_contour_mask(mask) -> tuple[torch.Tensor, torch.Tensor]:
     """Ordered outer contour pixels (N, 2) of the largest blob and its (1, 1, H, W) mask."""
-    import cv2
-    import numpy as np
-
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    if n <= 1:
-        return torch.zeros(0, 2, dtype=torch.long), torch.zeros(1, 1, *mask.shape, dtype=torch.bool)
-    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    contour = trace_outer_contour(labels == largest)
+    contour = trace_outer_contour(largest_component(mask))  # (0, 2) for an empty mask
     seeds = torch.zeros(1, 1, *mask.shape, dtype=torch.bool)
     seeds[0, 0, contour[:, 1], contour[:, 0]] = True
     return contour, seeds

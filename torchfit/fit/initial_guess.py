@@ -60,6 +60,7 @@ class StartInfo:
     forearm: float | None = None
 
     def to_dict(self) -> dict:
+        """The params.json form."""
         return asdict(self)
 
 

@@ -70,14 +70,16 @@ class EdgeSampler:
 
     @property
     def num_samples(self) -> int:
+        """Number of contour candidates (edges x samples per edge)."""
         return self.edges.shape[0] * self.k
 
     def endpoints(self, sample_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Vertex indices (a, b) and fraction t of samples: each (...,)."""
+        """Vertex indices (a, b) of samples: each (...,) (their fraction: :meth:`fraction`)."""
         e = sample_index // self.k
         return self.edges[e, 0], self.edges[e, 1]
 
     def fraction(self, sample_index: torch.Tensor) -> torch.Tensor:
+        """Fractions t along their edges of samples (N,) -> (N,)."""
         return self.t[sample_index % self.k]
 
     def silhouette_edges(self, pixels: np.ndarray) -> np.ndarray:
@@ -145,7 +147,7 @@ def select_contour(
     Returns:
         :class:`ContourSelection`. An image whose model has no contour sample in view gets no
         valid sample (the residual turns that into a large constant, see
-        :func:`torchfit.fit.residuals.contour_residuals`).
+        :func:`torchfit.fit.residuals.model_to_person` and ``NO_CONTOUR_PENALTY``).
     """
     import cv2
     from scipy.spatial import cKDTree

@@ -11,6 +11,8 @@ import torch
 
 from torchfit.camera import Camera
 from torchfit.errors import ShapeError
+from torchfit.image.contours import trace_outer_contour
+from torchfit.image.distance import mask_to_distance_map
 
 __all__ = ["PersonData", "person_data_from_masks"]
 
@@ -76,7 +78,7 @@ def person_data_from_masks(
         stride: keep every ``stride``-th contour pixel.
         dtype: dtype of the contours and distance maps.
         uncertain: optional (B, J, H, W) bool, pixels where the silhouette is not to be
-            trusted (:attr:`torchfit.segmentation.SegmentationResult.shadow`): person contour
+            trusted (:attr:`torchfit.image.SegmentationResult.shadow`): person contour
             pixels within ``margin_px`` of one do not count in e_P, and model contour points
             on one do not count in e_M. A silhouette cut short where a foot or shin looked
             like its own shadow then neither pulls the model's feet up nor pushes the model
@@ -87,8 +89,6 @@ def person_data_from_masks(
         :class:`PersonData`; an empty silhouette gives an empty contour and a map of large
         constant distance (that pose then only constrains through e_M).
     """
-    from torchfit.contours import mask_to_distance_map, trace_outer_contour
-
     b, n_pose, h, w = masks.shape
     near = None
     if uncertain is not None:

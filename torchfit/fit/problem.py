@@ -33,6 +33,7 @@ from torchfit.fit.model_contour import (
 from torchfit.fit.person import PersonData
 from torchfit.fit.pose import Poser, free_joints_for, nominal_angles
 from torchfit.fit.residuals import barrier, model_to_person, person_to_model
+from torchfit.image.distance import sample_distance_map
 
 __all__ = ["FitOptions", "SilhouetteFit"]
 
@@ -203,17 +204,7 @@ class SilhouetteFit:
     def _sample_rows(self, k: int, rows: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
         """Bilinear D_P of pose index k for each row's subject at (N, n, 2) points."""
         dmap = self.person.distance_maps[k].to(points.dtype)  # (B, H, W)
-        h, w = dmap.shape[-2:]
-        u = points[..., 0].clamp(0, w - 1)
-        v = points[..., 1].clamp(0, h - 1)
-        u0 = u.detach().floor().clamp(max=w - 2)
-        v0 = v.detach().floor().clamp(max=h - 2)
-        fu, fv = u - u0, v - v0
-        u0, v0 = u0.long(), v0.long()
-        r = rows[:, None].expand_as(u0)
-        d00, d01 = dmap[r, v0, u0], dmap[r, v0, u0 + 1]
-        d10, d11 = dmap[r, v0 + 1, u0], dmap[r, v0 + 1, u0 + 1]
-        return (d00 * (1 - fu) + d01 * fu) * (1 - fv) + (d10 * (1 - fu) + d11 * fu) * fv
+        return sample_distance_map(dmap.unsqueeze(1), points, rows)
 
     def _terms(
         self, k: int, rows: torch.Tensor, ends: ContourEndpoints, pix: dict[str, torch.Tensor]

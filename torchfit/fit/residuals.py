@@ -38,7 +38,7 @@ def model_to_person(distances: torch.Tensor, valid: torch.Tensor) -> torch.Tenso
 
     Args:
         distances: (B, N) D_P at the model contour points, pixels (e.g. from
-            :func:`torchfit.contours.sample_distance_map`).
+            :func:`torchfit.image.sample_distance_map`).
         valid: (B, N) bool.
 
     Returns:

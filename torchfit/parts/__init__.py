@@ -17,7 +17,7 @@ from torchfit.parts.curve import (
     curvature_extrema,
     fit_contour_spline,
 )
-from torchfit.parts.decompose import decompose_cactus, fill_holes, leg_gap_top, offsets_from_options
+from torchfit.parts.decompose import decompose_cactus, leg_gap_top, offsets_from_options
 from torchfit.parts.errors import PartsError
 from torchfit.parts.initial_guess import InitialGuess2D, PostureExtents, initial_guess_2d
 from torchfit.parts.options import PartsOptions
@@ -49,7 +49,6 @@ __all__ = [
     "hand_ellipse",
     "find_wrists",
     "decompose_cactus",
-    "fill_holes",
     "leg_gap_top",
     "offsets_from_options",
     "undistort_pixels",

@@ -157,7 +157,7 @@ def fit_contour_spline(
 
     Args:
         points: ``(N, 2)`` ordered ``(u, v)`` contour pixels, as
-            :func:`torchfit.contours.trace_outer_contour` returns them (the first point is not
+            :func:`torchfit.image.trace_outer_contour` returns them (the first point is not
             repeated at the end).
         smoothing: allowed RMS distance between spline and points, pixels (``>= 0``; 0
             interpolates every point, as the paper does).

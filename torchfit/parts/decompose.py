@@ -10,25 +10,15 @@ import cv2
 import numpy as np
 import torch
 
-from torchfit.contours import trace_outer_contour
+from torchfit.image.contours import trace_outer_contour
+from torchfit.image.morphology import fill_holes
 from torchfit.parts.curve import curvature_extrema, fit_contour_spline
 from torchfit.parts.errors import PartsError
 from torchfit.parts.options import PartsOptions
 from torchfit.parts.rules import JointOffsets, Labelling, RuleFailure, label_cactus
 from torchfit.parts.wrists import find_wrists
 
-__all__ = ["offsets_from_options", "fill_holes", "leg_gap_top", "decompose_cactus"]
-
-
-def fill_holes(mask: np.ndarray) -> np.ndarray:
-    """``(H, W)`` bool: ``mask`` with every background region not connected to the border
-    filled."""
-    h, w = mask.shape
-    pad = np.zeros((h + 2, w + 2), dtype=np.uint8)
-    pad[1:-1, 1:-1] = mask
-    flood = pad.copy()
-    cv2.floodFill(flood, np.zeros((h + 4, w + 4), np.uint8), (0, 0), 2)
-    return flood[1:-1, 1:-1] != 2
+__all__ = ["offsets_from_options", "leg_gap_top", "decompose_cactus"]
 
 
 def leg_gap_top(mask: np.ndarray, filled: np.ndarray, min_area: float = 0.002) -> np.ndarray | None:
@@ -40,7 +30,7 @@ def leg_gap_top(mask: np.ndarray, filled: np.ndarray, min_area: float = 0.002) -
 
     Args:
         mask: ``(H, W)`` bool silhouette, holes not filled.
-        filled: the same with its holes filled (:func:`fill_holes`).
+        filled: the same with its holes filled (:func:`torchfit.image.morphology.fill_holes`).
         min_area: smallest hole area, as a fraction of the silhouette height squared.
 
     Returns:

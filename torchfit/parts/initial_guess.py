@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from torchfit.parts.decompose import decompose_cactus, fill_holes
+from torchfit.image.morphology import fill_holes
+from torchfit.parts.decompose import decompose_cactus
 from torchfit.parts.errors import PartsError
 from torchfit.parts.options import PartsOptions
 from torchfit.parts.rules import Labelling

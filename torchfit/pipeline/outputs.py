@@ -13,19 +13,22 @@ import torch
 
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import POSTURES
+from torchfit.fit.model_contour import ContourSelection
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.io.dataset import Subject
 from torchfit.io.export import export_mesh, export_urdf
 from torchfit.measurements import MEASUREMENT_KEYS
+from torchfit.pipeline.prepare import PreparedSubject
 from torchfit.pipeline.stages import StageRecord
 from torchfit.status import SubjectStatus
+from torchfit.viz.overlay import fit_overlay
 
 __all__ = [
     "DONE_FILES",
     "SubjectResult",
     "pose_record",
     "params_document",
-    "write_overlay",
+    "write_overlays",
     "write_model",
     "write_summary",
     "resumed_result",
@@ -113,11 +116,39 @@ def params_document(
     }
 
 
-def write_overlay(path: Path, overlay: np.ndarray) -> None:
-    """Write an RGB overlay (H, W, 3) uint8 as PNG."""
+def write_overlays(
+    folder: Path,
+    prepared: PreparedSubject,
+    fit: SilhouetteFit,
+    selections: dict[int, ContourSelection],
+    i: int,
+    tb=None,
+) -> None:
+    """overlay_pose<j>.png of subject ``i`` for every fitted posture (and to TensorBoard).
+
+    Args:
+        folder: the subject's output folder.
+        prepared: the subject's images, silhouettes and shadow pixels.
+        fit: the batch's problem.
+        selections: the final model-contour choice per posture.
+        i: the subject's row in the batch.
+        tb: optional :class:`torchfit.pipeline.tensorboard.TensorBoardCallback`.
+    """
     import cv2
 
-    cv2.imwrite(str(path), overlay[:, :, ::-1])
+    name = prepared.subject.name
+    for j in fit.poses:
+        image = prepared.images[j - 1].permute(1, 2, 0).numpy()
+        overlay = fit_overlay(
+            (image * 255).round().astype(np.uint8),
+            prepared.masks[j - 1].numpy(),
+            selections[j].masks[i],
+            f"{name} pose{j} {POSTURES[j - 1].name}",
+            prepared.shadow[j - 1].numpy() if fit.person.uncertain is not None else None,
+        )
+        cv2.imwrite(str(folder / f"overlay_pose{j}.png"), overlay[:, :, ::-1])
+        if tb is not None:
+            tb.add_image(f"overlay/{name}/pose{j}", overlay)
 
 
 def write_model(model: BodyModel, scales: torch.Tensor, folder: Path, mesh_format: str) -> None:

@@ -9,12 +9,13 @@ from dataclasses import dataclass
 import torch
 
 from torchfit.camera import Camera
-from torchfit.config.schema import Config, SegmentationConfig
+from torchfit.config.schema import Config
 from torchfit.errors import DataError, SegmentationError
 from torchfit.fit.person import PersonData, person_data_from_masks
+from torchfit.image.background import fit_background
+from torchfit.image.segment import SegmentationOptions, segment
 from torchfit.io.dataset import Subject
 from torchfit.io.images import load_frames
-from torchfit.segmentation import fit_background, segment
 
 __all__ = ["PreparedSubject", "segment_subject", "prepare_subject", "person_data"]
 
@@ -39,7 +40,7 @@ class PreparedSubject:
 
 
 def segment_subject(
-    subject: Subject, segmentation: SegmentationConfig | Config
+    subject: Subject, segmentation: SegmentationOptions | Config
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Segment a subject's six posture images.
 

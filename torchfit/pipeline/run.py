@@ -18,12 +18,10 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from torchfit.body.measure import measure_model
 from torchfit.body.model import BodyModel
-from torchfit.body.postures import POSTURES
 from torchfit.camera import stack_cameras
 from torchfit.config.loader import save_config
 from torchfit.config.schema import Config
@@ -37,14 +35,13 @@ from torchfit.pipeline.outputs import (
     params_document,
     resumed_result,
     write_model,
-    write_overlay,
+    write_overlays,
     write_summary,
 )
 from torchfit.pipeline.prepare import PreparedSubject, person_data, prepare_subject
 from torchfit.pipeline.runtime import apply_runtime, torch_dtype
 from torchfit.pipeline.stages import run_stages, start_params
 from torchfit.status import SubjectStatus
-from torchfit.viz.overlay import fit_overlay
 
 __all__ = ["run", "fit_batch"]
 
@@ -108,18 +105,8 @@ def fit_batch(
         }
         status, message = judge(records[i], quality, config.fit.max_contour_rms_px)
         measurements = {k: float(v[i]) for k, v in measures.items()}
-        for j in fit.poses if config.output.overlays else ():
-            image = (prep.images[j - 1].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
-            overlay = fit_overlay(
-                image,
-                prep.masks[j - 1].numpy(),
-                selections[j].masks[i],
-                f"{name} pose{j} {POSTURES[j - 1].name}",
-                prep.shadow[j - 1].numpy() if fit.person.uncertain is not None else None,
-            )
-            write_overlay(folder / f"overlay_pose{j}.png", overlay)
-            if tb is not None:
-                tb.add_image(f"overlay/{name}/pose{j}", overlay)
+        if config.output.overlays:
+            write_overlays(folder, prep, fit, selections, i, tb)
         if tb is not None:
             for pose, values in quality.items():
                 for key, value in values.items():

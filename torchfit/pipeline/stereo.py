@@ -12,15 +12,16 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from torchfit.config.schema import SegmentationConfig
+from torchfit.image.background import fit_background
+from torchfit.image.morphology import fill_holes
+from torchfit.image.segment import SegmentationOptions, segment
 from torchfit.io.dataset import StereoInfo
 from torchfit.io.images import load_frames, read_image
 from torchfit.parts.correspond import corresponding_joints
-from torchfit.parts.decompose import decompose_cactus, fill_holes
+from torchfit.parts.decompose import decompose_cactus
 from torchfit.parts.options import PartsOptions
 from torchfit.parts.rules import Labelling
 from torchfit.parts.stereo import stereo_measurements, triangulate_midpoint
-from torchfit.segmentation import fit_background, segment
 
 __all__ = ["ViewResult", "StereoResult", "segment_view", "measure_stereo_pair"]
 
@@ -68,7 +69,7 @@ class StereoResult:
 
 
 def segment_view(
-    image_path, background_paths, config: SegmentationConfig
+    image_path, background_paths, config: SegmentationOptions
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Segment one view against its background frames.
 
@@ -92,7 +93,7 @@ def segment_view(
 def measure_stereo_pair(
     stereo: StereoInfo,
     parts: PartsOptions | None = None,
-    segmentation: SegmentationConfig | None = None,
+    segmentation: SegmentationOptions | None = None,
 ) -> StereoResult:
     """Segment, label and triangulate one subject's posture-5 stereo pair.
 
@@ -109,7 +110,7 @@ def measure_stereo_pair(
         DataError: an image or background frame cannot be read.
     """
     parts = parts or PartsOptions()
-    segmentation = segmentation or SegmentationConfig()
+    segmentation = segmentation or SegmentationOptions()
     out = StereoResult()
     for side in ("left", "right"):
         image, mask = segment_view(

@@ -100,6 +100,7 @@ class TensorBoardCallback:
         self.writer.add_scalar(tag, value, step)
 
     def flush(self) -> None:
+        """Write pending events to disk."""
         self.writer.flush()
 
     def close(self) -> None:

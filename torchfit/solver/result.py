@@ -38,6 +38,7 @@ class LMStatus(IntEnum):
 
     @property
     def message(self) -> str:
+        """The status in words."""
         return STATUS_MESSAGES[self]
 
 

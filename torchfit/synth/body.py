@@ -83,6 +83,7 @@ class Phenotype:
     proportions: float
 
     def as_dict(self) -> dict[str, float]:
+        """The phenotype values by name."""
         return {k: float(v) for k, v in self.__dict__.items()}
 
 

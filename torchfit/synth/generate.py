@@ -27,7 +27,6 @@ import json
 import logging
 import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,54 +35,16 @@ import numpy as np
 import torch
 
 from torchfit.camera import look_at
-from torchfit.errors import ConfigError
 from torchfit.io.camera import save_camera, save_stereo_cameras
 from torchfit.measurements import JOINT_NAMES, measurements_from_joints
 from torchfit.synth.body import AnnyBody, Phenotype, PosedBody, load_anny
+from torchfit.synth.options import SynthConfig
 from torchfit.synth.postures import POSTURES, STEREO_POSTURE, Posture, axis_angle, perturb
 from torchfit.synth.scene import Light, Room, finish, render, sample_camera, sample_room
 
 __all__ = ["SynthConfig", "make_subject", "make_subjects", "sample_phenotype"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class SynthConfig:
-    """Options of ``tools/make_subjects.py`` (YAML keys, checked by ``load_config``)."""
-
-    image_size: list[int] = field(default_factory=lambda: [720, 576])  # [width, height]
-    background_frames: int = 5
-    stereo: bool = True
-    joint_noise_deg: float = 10.0
-    floor_offset_m: float = 0.05
-    yaw_deg: float = 5.0
-    lean_deg: float = 2.0
-    height_range_m: list[float] = field(default_factory=lambda: [1.50, 2.00])
-    camera_distance_m: list[float] = field(default_factory=lambda: [3.0, 4.0])
-    camera_height_m: list[float] = field(default_factory=lambda: [1.2, 1.45])
-    stereo_baseline_m: list[float] = field(default_factory=lambda: [0.2, 0.3])
-    noise_sigma: float = 2.0  # sensor noise, 8-bit grey levels
-    illumination_change: float = 0.04  # posture images vs background: gain within +-this
-    png_compression: int = 3
-
-    def __post_init__(self) -> None:
-        if len(self.image_size) != 2 or min(self.image_size) < 16:
-            raise ConfigError(
-                f"synth config: key 'image_size' expects [width, height], got {self.image_size}"
-            )
-        for key in ("height_range_m", "camera_distance_m", "camera_height_m", "stereo_baseline_m"):
-            value = getattr(self, key)
-            if len(value) != 2 or value[0] > value[1]:
-                raise ConfigError(f"synth config: key '{key}' expects [low, high], got {value}")
-        if self.background_frames < 5:
-            raise ConfigError(
-                f"synth config: key 'background_frames' must be >= 5, got {self.background_frames}"
-            )
-        if not 0 <= self.png_compression <= 9:
-            raise ConfigError(
-                f"synth config: key 'png_compression' must be in 0..9, got {self.png_compression}"
-            )
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,7 +1,7 @@
-"""Contours, distance transforms and distance-map sampling against independent references.
+"""Distance transforms and distance-map sampling against independent references.
 
-References: a naive double loop of the two-pass 3-4 chamfer algorithm (below), SciPy's
-``distance_transform_edt`` and OpenCV's ``findContours``.
+References: a naive double loop of the two-pass 3-4 chamfer algorithm, SciPy's
+``distance_transform_edt`` and hand-computed bilinear blends.
 """
 
 from __future__ import annotations
@@ -10,9 +10,11 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from image_testing import naive_chamfer_34
 from scipy import ndimage
 
-from torchfit.contours import (
+from torchfit.errors import ShapeError
+from torchfit.image import (
     chamfer_distance_transform,
     contour_mask,
     distance_map,
@@ -20,43 +22,8 @@ from torchfit.contours import (
     mask_to_distance_map,
     outer_contours,
     sample_distance_map,
-    trace_outer_contour,
 )
-from torchfit.errors import ShapeError
 from torchfit.io import read_mask
-
-BIG = 10**9
-
-
-def naive_chamfer_34(seeds: np.ndarray) -> np.ndarray:
-    """The textbook two-pass 3-4 chamfer transform (Borgefors 1986), one pixel at a time."""
-    h, w = seeds.shape
-    d = np.where(seeds, 0, BIG).astype(np.int64)
-    for y in range(h):
-        for x in range(w):
-            for dy, dx, c in ((-1, -1, 4), (-1, 0, 3), (-1, 1, 4), (0, -1, 3)):
-                yy, xx = y + dy, x + dx
-                if 0 <= yy < h and 0 <= xx < w:
-                    d[y, x] = min(d[y, x], d[yy, xx] + c)
-    for y in range(h - 1, -1, -1):
-        for x in range(w - 1, -1, -1):
-            for dy, dx, c in ((1, 1, 4), (1, 0, 3), (1, -1, 4), (0, 1, 3)):
-                yy, xx = y + dy, x + dx
-                if 0 <= yy < h and 0 <= xx < w:
-                    d[y, x] = min(d[y, x], d[yy, xx] + c)
-    return d
-
-
-def random_blob(rng: np.random.Generator, h: int, w: int, level: float = 0.52) -> np.ndarray:
-    """A smooth random single 8-connected region (uint8 0/1), possibly with holes."""
-    for _ in range(100):
-        field = ndimage.gaussian_filter(rng.random((h, w)), 3)
-        m = (field > level).astype(np.uint8)
-        n, labels = cv2.connectedComponents(m, connectivity=8)
-        if n >= 2:
-            sizes = np.bincount(labels.ravel())[1:]
-            return (labels == 1 + int(np.argmax(sizes))).astype(np.uint8)
-    raise RuntimeError("no blob")
 
 
 @pytest.mark.parametrize("algorithm", ["rows", "lines", "auto"])
@@ -107,71 +74,6 @@ def test_distance_map_units_and_empty_image() -> None:
     assert bool(torch.isinf(cham[1]).all()) and bool(torch.isinf(eucl[1]).all())
     with pytest.raises(ValueError, match="method must be"):
         distance_map(seeds, "manhattan")
-
-
-def test_trace_matches_opencv_find_contours() -> None:
-    rng = np.random.default_rng(3)
-    for i in range(40):
-        h, w = (30, 45) if i % 2 else (41, 29)
-        m = random_blob(rng, h, w, level=0.5 + 0.01 * (i % 5))
-        ref, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        assert len(ref) == 1
-        got = trace_outer_contour(m)
-        np.testing.assert_array_equal(got.numpy(), ref[0][:, 0, :])
-
-
-@pytest.mark.parametrize(
-    "name",
-    ["single", "hline", "vline", "diagonal", "spur", "ring", "full", "corner"],
-)
-def test_trace_special_shapes_match_opencv(name: str) -> None:
-    m = np.zeros((12, 14), np.uint8)
-    if name == "single":
-        m[5, 6] = 1
-    elif name == "hline":
-        m[4, 2:10] = 1
-    elif name == "vline":
-        m[1:9, 3] = 1
-    elif name == "diagonal":
-        for k in range(7):
-            m[2 + k, 3 + k] = 1
-    elif name == "spur":
-        m[3:8, 3:8] = 1
-        m[5, 8:12] = 1
-    elif name == "ring":
-        m[2:10, 2:12] = 1
-        m[4:8, 5:9] = 0
-    elif name == "full":
-        m[:] = 1
-    elif name == "corner":
-        m[0:4, 0:5] = 1
-        m[4:8, 5:9] = 1  # touches only diagonally: one 8-connected region
-    ref, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    np.testing.assert_array_equal(trace_outer_contour(m).numpy(), ref[0][:, 0, :])
-
-
-def test_trace_empty_and_bad_shape() -> None:
-    assert trace_outer_contour(np.zeros((5, 5), np.uint8)).shape == (0, 2)
-    with pytest.raises(ShapeError, match=r"mask: expected shape \(H, W\)"):
-        trace_outer_contour(np.zeros((1, 5, 5)))
-    with pytest.raises(ShapeError, match="masks: expected shape"):
-        outer_contours(torch.zeros(5, 5, dtype=torch.bool))
-    with pytest.raises(ShapeError, match="expected a bool mask"):
-        contour_mask(torch.zeros(1, 1, 5, 5))
-
-
-def test_contour_mask_is_the_4_adjacent_border_of_a_hole_free_region() -> None:
-    """Independent check: the outer border is every pixel with a 4-neighbour outside."""
-    rng = np.random.default_rng(4)
-    cross = ndimage.generate_binary_structure(2, 1)
-    masks = []
-    for _ in range(6):
-        masks.append(ndimage.binary_fill_holes(random_blob(rng, 40, 50)))
-    t = torch.from_numpy(np.stack(masks))[:, None]
-    got = contour_mask(t)[:, 0].numpy()
-    for m, g in zip(masks, got, strict=True):
-        ref = m & ~ndimage.binary_erosion(m, cross, border_value=0)
-        np.testing.assert_array_equal(g, ref)
 
 
 def test_real_silhouettes_contour_and_distance(shared_data) -> None:
@@ -245,3 +147,65 @@ def test_sample_distance_map_errors() -> None:
         sample_distance_map(dist, torch.zeros(2, 3, 2, dtype=torch.float64))
     with pytest.raises(ShapeError, match=r"dist: expected shape \(B, 1, H, W\)"):
         sample_distance_map(torch.zeros(2, 5, 5), torch.zeros(2, 3, 2))
+
+
+def _old_sample_rows(dmap: torch.Tensor, rows: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """The fit's former per-row sampler (SilhouetteFit._sample_rows), verbatim: (B, H, W)."""
+    h, w = dmap.shape[-2:]
+    u = points[..., 0].clamp(0, w - 1)
+    v = points[..., 1].clamp(0, h - 1)
+    u0 = u.detach().floor().clamp(max=w - 2)
+    v0 = v.detach().floor().clamp(max=h - 2)
+    fu, fv = u - u0, v - v0
+    u0, v0 = u0.long(), v0.long()
+    r = rows[:, None].expand_as(u0)
+    d00, d01 = dmap[r, v0, u0], dmap[r, v0, u0 + 1]
+    d10, d11 = dmap[r, v0 + 1, u0], dmap[r, v0 + 1, u0 + 1]
+    return (d00 * (1 - fu) + d01 * fu) * (1 - fv) + (d10 * (1 - fu) + d11 * fu) * fv
+
+
+def _old_grid_sample(dist: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """The former sample_distance_map (grid_sample, border padding)."""
+    h, w = dist.shape[-2:]
+    scale = points.new_tensor([2.0 / (w - 1), 2.0 / (h - 1)])
+    grid = (points * scale - 1.0).unsqueeze(1)
+    out = torch.nn.functional.grid_sample(
+        dist, grid, mode="bilinear", padding_mode="border", align_corners=True
+    )
+    return out[:, 0, 0, :]
+
+
+def test_sample_distance_map_rows_equals_the_former_fit_sampler_bitwise() -> None:
+    import torch.autograd.forward_ad as fwad
+
+    gen = torch.Generator().manual_seed(3)
+    dmap = torch.rand(3, 12, 17, generator=gen, dtype=torch.float64) * 9
+    rows = torch.tensor([2, 0, 0, 1, 2])
+    points = torch.rand(5, 40, 2, generator=gen, dtype=torch.float64) * 24 - 4
+    points[0, :5] = torch.tensor([[0.0, 0.0], [16.0, 11.0], [3.0, 7.0], [16.0, 0.0], [2.5, 11.0]])
+    got = sample_distance_map(dmap.unsqueeze(1), points, rows)
+    assert torch.equal(got, _old_sample_rows(dmap, rows, points))
+    # reverse mode
+    p1 = points.clone().requires_grad_(True)
+    p2 = points.clone().requires_grad_(True)
+    sample_distance_map(dmap.unsqueeze(1), p1, rows).square().sum().backward()
+    _old_sample_rows(dmap, rows, p2).square().sum().backward()
+    assert torch.equal(p1.grad, p2.grad)
+    # forward mode (the fit's Jacobian pushes dual pixels through the sampler)
+    tangent = torch.randn(points.shape, generator=gen, dtype=torch.float64)
+    with fwad.dual_level():
+        a = fwad.unpack_dual(
+            sample_distance_map(dmap.unsqueeze(1), fwad.make_dual(points, tangent), rows)
+        )
+        b = fwad.unpack_dual(_old_sample_rows(dmap, rows, fwad.make_dual(points, tangent)))
+        assert torch.equal(a.primal, b.primal) and torch.equal(a.tangent, b.tangent)
+    # one map per row without ``rows`` agrees with the former grid_sample version to rounding
+    batch = points[:3]
+    torch.testing.assert_close(
+        sample_distance_map(dmap.unsqueeze(1), batch),
+        _old_grid_sample(dmap.unsqueeze(1), batch),
+        rtol=0,
+        atol=1e-12,
+    )
+    with pytest.raises(ShapeError, match=r"rows: expected shape \(5\)"):
+        sample_distance_map(dmap.unsqueeze(1), points, rows[:4])

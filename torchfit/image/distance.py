@@ -1,4 +1,4 @@
-"""Outer contours of silhouettes, distance maps to them, and sub-pixel sampling of the maps.
+"""Distance maps to contours (chamfer 3-4 and exact Euclidean) and their sub-pixel sampling.
 
 Conventions (see ``docs/design.md`` section 2):
 
@@ -27,22 +27,22 @@ Two distance transforms are offered:
   ``scipy.ndimage.distance_transform_edt``): exact distance to the nearest seed in the same
   column first, then a search along the row over growing offsets that stops as soon as no
   pixel can still improve.
+
+:func:`sample_distance_map` reads the maps at sub-pixel points by bilinear interpolation; it
+serves both a batch of maps sampled one per row and the fit's rows that each pick their
+subject's map (``rows``).
 """
 
 from __future__ import annotations
 
 from typing import Literal
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 
 from torchfit.errors import ShapeError, check_shape
+from torchfit.image.contours import _check_masks, contour_mask
 
 __all__ = [
-    "trace_outer_contour",
-    "outer_contours",
-    "contour_mask",
     "chamfer_distance_transform",
     "euclidean_distance_transform",
     "distance_map",
@@ -54,106 +54,6 @@ __all__ = [
 # to ~100k pixels a side, and far below the int32/int64 limits after the offsets are added.
 _INF = 1 << 20
 _EDT_INF = 1 << 15  # the same for the exact transform, whose squares must fit in int32
-
-# The 8 neighbours, clockwise on screen (v down): E, SE, S, SW, W, NW, N, NE, as (du, dv).
-_DIRS = ((1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1))
-
-
-def _check_masks(name: str, masks: torch.Tensor) -> None:
-    check_shape(name, masks, ("B", 1, "H", "W"))
-    if masks.dtype != torch.bool:
-        raise ShapeError(f"{name}: expected a bool mask tensor, got dtype {masks.dtype}")
-
-
-def trace_outer_contour(mask: np.ndarray | torch.Tensor) -> torch.Tensor:
-    """Follow the outer border of one 8-connected region, in order.
-
-    The region is the one holding the first foreground pixel in raster order (top row first,
-    then left to right); pass a cleaned mask with a single region. The border is followed as in
-    Suzuki and Abe's border following (CVGIP 30(1), 1985), which is what ``cv2.findContours``
-    does: it starts at that first pixel, runs counter-clockwise on screen, and lists a pixel
-    again each time the border passes it (one-pixel-wide spurs are walked out and back).
-
-    Args:
-        mask: ``(H, W)`` mask (bool or integer, non-zero = region), array or tensor.
-
-    Returns:
-        ``(N, 2)`` ``int64`` tensor of ``(u, v)`` contour pixels, ``N = 0`` for an empty mask.
-
-    Raises:
-        ShapeError: if ``mask`` is not 2-D.
-    """
-    if isinstance(mask, torch.Tensor):
-        mask = mask.detach().cpu().numpy()
-    mask = np.asarray(mask)
-    if mask.ndim != 2:
-        raise ShapeError(f"mask: expected shape (H, W), got {mask.shape}")
-    h, w = mask.shape
-    padded = np.zeros((h + 2, w + 2), dtype=np.uint8)
-    padded[1:-1, 1:-1] = mask != 0
-    flat = padded.tobytes()  # indexing bytes gives ints: fast in the Python loop below
-    start = flat.find(b"\x01")
-    if start < 0:
-        return torch.zeros((0, 2), dtype=torch.int64)
-    wp = w + 2
-    offsets = [du + dv * wp for du, dv in _DIRS]
-    direction_of = {off: d for d, off in enumerate(offsets)}
-
-    # First step: search clockwise from the west neighbour (background, since the start pixel
-    # is the first in raster order) for the last pixel of the border, p1.
-    p1 = -1
-    for k in range(8):
-        q = start + offsets[(4 + k) % 8]
-        if flat[q]:
-            p1 = q
-            break
-    chain = [start]
-    if p1 >= 0:
-        prev, cur = p1, start
-        while True:
-            d = direction_of[prev - cur]
-            nxt = prev
-            for k in range(1, 8):  # counter-clockwise, starting after the previous pixel
-                q = cur + offsets[(d - k) % 8]
-                if flat[q]:
-                    nxt = q
-                    break
-            if nxt == start and cur == p1:
-                break
-            chain.append(nxt)
-            prev, cur = cur, nxt
-    idx = np.asarray(chain, dtype=np.int64)
-    return torch.from_numpy(np.stack([idx % wp - 1, idx // wp - 1], axis=1))
-
-
-def outer_contours(masks: torch.Tensor) -> list[torch.Tensor]:
-    """Ordered outer contour of each mask of a batch (see :func:`trace_outer_contour`).
-
-    Args:
-        masks: ``(B, 1, H, W)`` bool.
-
-    Returns:
-        ``B`` tensors of shape ``(N_b, 2)``, ``int64`` ``(u, v)`` pixels on ``masks.device``.
-    """
-    _check_masks("masks", masks)
-    host = masks[:, 0].detach().cpu().numpy()
-    return [trace_outer_contour(m).to(masks.device) for m in host]
-
-
-def contour_mask(masks: torch.Tensor) -> torch.Tensor:
-    """Rasterise the ordered outer contour of each mask.
-
-    Args:
-        masks: ``(B, 1, H, W)`` bool.
-
-    Returns:
-        ``(B, 1, H, W)`` bool, ``True`` on the pixels of :func:`outer_contours`.
-    """
-    _check_masks("masks", masks)
-    out = torch.zeros_like(masks)
-    for b, pts in enumerate(outer_contours(masks)):
-        out[b, 0, pts[:, 1], pts[:, 0]] = True
-    return out
 
 
 def _line_transform(f: torch.Tensor, cost: int) -> torch.Tensor:
@@ -371,22 +271,36 @@ def mask_to_distance_map(
     return distance_map(contour_mask(masks), method)
 
 
-def sample_distance_map(dist: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Bilinear sample of a distance map at sub-pixel points, differentiable in the points.
+def sample_distance_map(
+    dist: torch.Tensor, points: torch.Tensor, rows: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Bilinear sample of distance maps at sub-pixel points, differentiable in the points.
 
     Pixel ``(0, 0)`` is the centre of the top-left pixel, so integer points return the stored
     values exactly. Points outside the image take the value of the nearest border point
-    (clamped; the gradient there is zero in the clamped direction).
+    (clamped; the gradient there is zero in the clamped direction). The four neighbours are
+    chosen from the detached points, so the result is differentiable in ``points`` in reverse
+    and in forward mode (dual tensors), piecewise bilinear with kinks on the pixel grid lines.
 
     Args:
-        dist: ``(B, 1, H, W)`` floating map (``H, W >= 2``).
-        points: ``(B, N, 2)`` ``(u, v)`` pixels, same dtype and device as ``dist``.
+        dist: ``(B, 1, H, W)`` floating maps (``H, W >= 2``).
+        points: ``(N, P, 2)`` ``(u, v)`` pixels, same dtype and device as ``dist``; without
+            ``rows``, ``N = B`` and row ``i`` samples map ``i``.
+        rows: optional ``(N,)`` integer index of the map each row of ``points`` samples.
 
     Returns:
-        ``(B, N)`` sampled distances.
+        ``(N, P)`` sampled distances.
+
+    Raises:
+        ShapeError: for wrongly shaped inputs or a ``points`` dtype other than ``dist``'s.
     """
     check_shape("dist", dist, ("B", 1, "H", "W"))
-    check_shape("points", points, (dist.shape[0], "N", 2))
+    if rows is None:
+        check_shape("points", points, (dist.shape[0], "N", 2))
+        rows = torch.arange(dist.shape[0], device=dist.device)
+    else:
+        check_shape("points", points, ("N", "P", 2))
+        check_shape("rows", rows, (points.shape[0],))
     h, w = dist.shape[-2:]
     if h < 2 or w < 2:
         raise ShapeError(f"dist: expected H, W >= 2 for bilinear sampling, got {tuple(dist.shape)}")
@@ -394,7 +308,14 @@ def sample_distance_map(dist: torch.Tensor, points: torch.Tensor) -> torch.Tenso
         raise ShapeError(
             f"points: expected dtype {dist.dtype} (that of a floating dist), got {points.dtype}"
         )
-    scale = points.new_tensor([2.0 / (w - 1), 2.0 / (h - 1)])
-    grid = (points * scale - 1.0).unsqueeze(1)  # (B, 1, N, 2) in [-1, 1]
-    out = F.grid_sample(dist, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    return out[:, 0, 0, :]
+    dmap = dist[:, 0]
+    u = points[..., 0].clamp(0, w - 1)
+    v = points[..., 1].clamp(0, h - 1)
+    u0 = u.detach().floor().clamp(max=w - 2)
+    v0 = v.detach().floor().clamp(max=h - 2)
+    fu, fv = u - u0, v - v0
+    u0, v0 = u0.long(), v0.long()
+    r = rows[:, None].expand_as(u0)
+    d00, d01 = dmap[r, v0, u0], dmap[r, v0, u0 + 1]
+    d10, d11 = dmap[r, v0 + 1, u0], dmap[r, v0 + 1, u0 + 1]
+    return (d00 * (1 - fu) + d01 * fu) * (1 - fv) + (d10 * (1 - fu) + d11 * fu) * fv

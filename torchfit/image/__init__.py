@@ -1,0 +1,67 @@
+"""Image side of torchfit: background subtraction, clean-up, contours and distance maps.
+
+Conventions shared by the modules: images are ``(B, 3, H, W)`` RGB in ``[0, 1]``; masks and
+maps are ``(B, 1, H, W)`` (masks ``bool``, ``True`` = person); pixel ``(0, 0)`` is the centre of
+the top-left pixel and points are ``(u, v)`` with ``v`` down (``docs/design.md`` section 2).
+
+- :mod:`~torchfit.image.background`: colour features and the per-pixel background model.
+- :mod:`~torchfit.image.shadow`: the explicit cast-shadow test.
+- :mod:`~torchfit.image.morphology`: opening, closing, largest region, hole filling.
+- :mod:`~torchfit.image.segment`: :class:`SegmentationOptions` and the whole chain.
+- :mod:`~torchfit.image.contours`: ordered outer contours.
+- :mod:`~torchfit.image.distance`: distance transforms and bilinear sampling of the maps.
+"""
+
+from torchfit.image.background import (
+    BackgroundModel,
+    color_features,
+    fit_background,
+    mahalanobis_distance,
+)
+from torchfit.image.contours import contour_mask, outer_contours, trace_outer_contour
+from torchfit.image.distance import (
+    chamfer_distance_transform,
+    distance_map,
+    euclidean_distance_transform,
+    mask_to_distance_map,
+    sample_distance_map,
+)
+from torchfit.image.morphology import (
+    binary_closing,
+    binary_opening,
+    fill_holes,
+    largest_component,
+)
+from torchfit.image.segment import (
+    SegmentationOptions,
+    SegmentationResult,
+    clean_mask,
+    segment,
+)
+from torchfit.image.shadow import bridged, lower_band, shadow_mask
+
+__all__ = [
+    "BackgroundModel",
+    "color_features",
+    "fit_background",
+    "mahalanobis_distance",
+    "shadow_mask",
+    "lower_band",
+    "bridged",
+    "binary_opening",
+    "binary_closing",
+    "largest_component",
+    "fill_holes",
+    "SegmentationOptions",
+    "SegmentationResult",
+    "clean_mask",
+    "segment",
+    "trace_outer_contour",
+    "outer_contours",
+    "contour_mask",
+    "chamfer_distance_transform",
+    "euclidean_distance_transform",
+    "distance_map",
+    "mask_to_distance_map",
+    "sample_distance_map",
+]

@@ -1,0 +1,196 @@
+"""The segmentation chain: colour test, optional shadow test, clean-up (first paper, section 4).
+
+Conventions: images ``(B, 3, H, W)`` RGB in ``[0, 1]`` (any float dtype, any device); masks
+``(B, 1, H, W)`` bool, ``True`` on the person. :class:`SegmentationOptions` holds every knob
+of the chain (it is also the ``segmentation:`` section of the run config).
+
+The chain: the Mahalanobis test of :mod:`torchfit.image.background` above ``threshold``; with
+``shadow_test`` the pixels :func:`~torchfit.image.shadow.shadow_mask` takes for a cast shadow
+(within the lowest ``shadow_band`` of the foreground, and with ``shadow_bridge`` not between
+the body and a part cut off below it) become background again; then :func:`clean_mask`:
+opening, largest 8-connected region, closing and hole filling. ``fill_holes`` fills background
+regions enclosed by the silhouette; with ``max_hole_area`` only those up to that fraction of
+the silhouette's area, so that a large enclosed gap (between the legs, closed below by a shadow
+or the feet) stays open.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+
+from torchfit.errors import ConfigError, ShapeError
+from torchfit.image.background import BackgroundModel, mahalanobis_distance
+from torchfit.image.morphology import binary_closing, binary_opening, largest_component
+from torchfit.image.morphology import fill_holes as _fill_holes
+from torchfit.image.shadow import bridged, lower_band, shadow_mask
+
+__all__ = ["SegmentationOptions", "SegmentationResult", "clean_mask", "segment"]
+
+
+@dataclass(frozen=True)
+class SegmentationOptions:
+    """HSL Mahalanobis background subtraction and clean-up (first paper, section 4)."""
+
+    threshold: float = 4.0  # Mahalanobis distance above which a pixel is the person
+    gamma: float = 0.3  # weight of lightness against the hue/saturation disc, in [0, 1]
+    color_space: Literal["hsl", "rgb"] = "hsl"  # "rgb" is the baseline, for comparisons only
+    regularization: float = 1.0  # variance added to the covariance diagonal, (8-bit levels)^2
+    min_background_frames: int = 5
+    background: Literal["frames", "temporal_median"] = "frames"
+    open_kernel: int = 3
+    close_kernel: int = 7
+    largest_region: bool = True  # keep only the largest region (one person); false keeps all
+    fill_holes: bool = True
+    # largest hole filled, as a fraction of the silhouette's area (holes included); None fills
+    # every hole. A small value keeps the gap between the legs when a shadow closes it below
+    max_hole_area: float | None = None
+    # explicit cast-shadow test (the first paper's suggested improvement, its reference [4]):
+    # a pixel darker than the background by an RGB ratio in shadow_ratio, with a colour
+    # direction within shadow_chroma (radians) of the background's, is background
+    shadow_test: bool = False
+    shadow_ratio: tuple[float, float] = (0.5, 0.95)
+    shadow_chroma: float = 0.05
+    # the shadow test applies only to the lowest shadow_band fraction of the foreground's
+    # height (cast shadows lie on the floor around the feet; grey clothing on a grey wall
+    # passes the colour test too); 1 applies it everywhere
+    shadow_band: float = 1.0
+    # keep as person the shadow-like pixels with person both above and below them in their
+    # image column (a grey shin between the knee and a dark shoe), which a cast shadow on the
+    # floor beside or in front of the feet never has
+    shadow_bridge: bool = False
+    distance: Literal["chamfer", "euclidean"] = "chamfer"
+    # run the per-pixel colour test through torch.compile (needs a C++ compiler on CPU; about a
+    # minute to compile the first time, cached afterwards; several times faster per frame)
+    compile: bool = False
+
+
+def clean_mask(
+    masks: torch.Tensor,
+    open_kernel: int = 3,
+    close_kernel: int = 7,
+    fill_holes: bool = True,
+    largest_region: bool = True,
+    max_hole_area: float | None = None,
+) -> torch.Tensor:
+    """Opening, largest 8-connected region, closing, optional hole filling (paper, section 4).
+
+    Args:
+        masks: ``(B, 1, H, W)`` bool raw foreground.
+        open_kernel: side of the square opening element in pixels (odd); ``<= 1`` skips it.
+        close_kernel: side of the square closing element (odd); ``<= 1`` skips the closing.
+        fill_holes: fill background regions enclosed by the person.
+        max_hole_area: with ``fill_holes``, fill only holes up to this fraction (in
+            ``[0, 1]``) of the silhouette's area, holes included; None fills every hole.
+        largest_region: keep only the largest region (the paper's one-person assumption);
+            ``False`` keeps every region that survives the opening (for scenes with several
+            people, e.g. for scoring against multi-person ground truth).
+
+    Returns:
+        ``(B, 1, H, W)`` bool, at most one region per image with ``largest_region`` (empty
+        where none was found).
+    """
+    if not isinstance(masks, torch.Tensor) or masks.dim() != 4 or masks.shape[1] != 1:
+        shape = tuple(masks.shape) if isinstance(masks, torch.Tensor) else type(masks).__name__
+        raise ShapeError(f"masks: expected shape (B, 1, H, W), got {shape}")
+    if masks.dtype != torch.bool:
+        raise ShapeError(f"masks: expected a bool tensor, got dtype {masks.dtype}")
+    for name, k in (("open_kernel", open_kernel), ("close_kernel", close_kernel)):
+        if k > 1 and k % 2 == 0:
+            raise ValueError(f"{name} must be odd (or <= 1 to skip the step), got {k}")
+    if max_hole_area is not None and not 0.0 <= max_hole_area <= 1.0:
+        raise ValueError(f"max_hole_area must be in [0, 1] or None, got {max_hole_area}")
+    out = masks
+    if open_kernel > 1:
+        out = binary_opening(out, open_kernel)
+    if largest_region:
+        host = out[:, 0].cpu().numpy()
+        kept = np.stack([largest_component(m) for m in host])
+        out = torch.from_numpy(kept).to(masks.device).unsqueeze(1)
+    if close_kernel > 1:
+        out = binary_closing(out, close_kernel)
+    if fill_holes:
+        host = out[:, 0].cpu().numpy()
+        # the closing can join a stray blob to the person: keep the largest region again
+        if largest_region:
+            host = [largest_component(m) for m in host]
+        filled = np.stack([_fill_holes(m, max_hole_area) for m in host])
+        out = torch.from_numpy(filled).to(masks.device).unsqueeze(1)
+    return out
+
+
+@dataclass
+class SegmentationResult:
+    """The output of :func:`segment`.
+
+    Attributes:
+        masks: ``(B, 1, H, W)`` bool cleaned silhouettes.
+        distance: ``(B, 1, H, W)`` Mahalanobis distance to the background.
+        found: ``(B,)`` bool, ``False`` where no person region was left after clean-up.
+        shadow: ``(B, 1, H, W)`` bool, the pixels that differ from the background but that the
+            shadow test took for a cast shadow (all ``False`` without ``shadow_test``). Parts
+            of the person that look like a darker copy of the floor (grey trousers or shoes on
+            a grey or brown floor) end up here too: the fit can treat these pixels as
+            uncertain instead of as background (``fit.ignore_shadow``).
+    """
+
+    masks: torch.Tensor
+    distance: torch.Tensor
+    found: torch.Tensor
+    shadow: torch.Tensor | None = None
+
+
+def segment(
+    images: torch.Tensor,
+    background: BackgroundModel,
+    options: SegmentationOptions | None = None,
+) -> SegmentationResult:
+    """Segment the person in a batch of images: Mahalanobis test, then :func:`clean_mask`.
+
+    Args:
+        images: ``(B, 3, H, W)`` RGB in ``[0, 1]``.
+        background: from :func:`~torchfit.image.background.fit_background`, batch 1 or
+            ``B``.
+        options: ``threshold``, ``open_kernel``, ``close_kernel``, ``fill_holes``,
+            ``max_hole_area``, ``largest_region`` and, with ``shadow_test``, ``shadow_ratio``,
+            ``shadow_chroma`` and ``shadow_band`` are used.
+
+    Returns:
+        :class:`SegmentationResult`; an image without a person has ``found = False`` and an
+        empty mask (no exception, so one bad image does not stop a batch).
+    """
+    options = options or SegmentationOptions()
+    distance = mahalanobis_distance(background, images, compiled=options.compile)
+    raw = distance > options.threshold
+    removed = torch.zeros_like(raw)
+    if options.shadow_test:
+        if len(options.shadow_ratio) != 2:
+            raise ConfigError(
+                f"segmentation.shadow_ratio: expected [low, high], got {options.shadow_ratio}"
+            )
+        low, high = options.shadow_ratio[0], options.shadow_ratio[1]
+        shadow = shadow_mask(background, images, (low, high), options.shadow_chroma)
+        if not 0.0 < options.shadow_band <= 1.0:
+            raise ConfigError(
+                f"segmentation.shadow_band: expected a value in (0, 1], got {options.shadow_band}"
+            )
+        if options.shadow_band < 1.0:
+            shadow = shadow & lower_band(raw, options.shadow_band, options.open_kernel)
+        if options.shadow_bridge:
+            shadow = shadow & ~bridged(raw & ~shadow, options.open_kernel)
+        removed = raw & shadow
+        raw = raw & ~shadow
+    masks = clean_mask(
+        raw,
+        options.open_kernel,
+        options.close_kernel,
+        options.fill_holes,
+        options.largest_region,
+        options.max_hole_area,
+    )
+    return SegmentationResult(masks, distance, masks.flatten(1).any(1), removed)
+
+
