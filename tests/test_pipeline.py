@@ -118,3 +118,46 @@ def test_measure_stereo_cli_says_when_no_subject_has_a_pair(dataset, tmp_path):
         rows = list(csv.DictReader(fh))
     assert [r["status"] for r in rows] == ["skipped"] * 3
     assert all("stereo/" in r["message"] for r in rows)
+
+
+class _Bar:
+    """A progress bar that records what it is told (the tqdm calls the pipeline makes)."""
+
+    made: list["_Bar"] = []
+
+    def __init__(self, desc, total):
+        self.desc, self.total, self.n, self.postfix, self.closed = desc, total, 0, {}, False
+        _Bar.made.append(self)
+
+    def update(self, n=1):
+        self.n += n
+
+    def set_postfix(self, **kw):
+        self.postfix = kw
+
+    def close(self):
+        self.closed = True
+
+
+def test_progress_per_subject_and_per_solver_iteration(dataset, tmp_path):
+    from torchfit.config import load_config, replace_keys
+    from torchfit.pipeline import run
+
+    config = load_config(REPO / "configs/demo.yaml", list(FAST[1::2]))
+    config = replace_keys(
+        config,
+        {"data.root": str(dataset), "data.subjects": ("alice",), "output.overlays": False},
+    )
+    _Bar.made = []
+    subjects = []
+    run(
+        config,
+        tmp_path / "run",
+        progress=lambda n: subjects.append(_Bar("subjects", n)) or subjects[-1],
+        stage_progress=lambda desc, n: _Bar(desc, n),
+    )
+    assert subjects[0].total == 1 and subjects[0].n == 1 and subjects[0].closed
+    stage = [b for b in _Bar.made if b.desc.startswith("stage1_all")]
+    assert len(stage) == 1 and stage[0].closed
+    assert 1 <= stage[0].n <= stage[0].total == 2  # one update per solver iteration
+    assert float(stage[0].postfix["cost"]) > 0 and stage[0].postfix["running"].endswith("/1")

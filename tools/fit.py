@@ -33,7 +33,12 @@ def main(argv: list[str] | None = None) -> int:
         from torchfit.pipeline import run
 
         results = run(
-            config, run_dir, progress=lambda n: tqdm(total=n, desc="subjects", unit="subject")
+            config,
+            run_dir,
+            progress=lambda n: tqdm(total=n, desc="subjects", unit="subject", position=0),
+            stage_progress=lambda desc, n: tqdm(
+                total=n, desc=desc, unit="it", position=1, leave=False
+            ),
         )
     except TorchfitError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -48,7 +48,9 @@ __all__ = ["run", "fit_batch"]
 log = logging.getLogger(__name__)
 
 
-def _fit(prepared: list[PreparedSubject], model: BodyModel, config: Config, tb=None):
+def _fit(
+    prepared: list[PreparedSubject], model: BodyModel, config: Config, tb=None, stage_progress=None
+):
     """Build the batch's problem, start it and run the stages."""
     names = [p.subject.name for p in prepared]
     used = [j - 1 for j in config.fit.poses]  # the fitted postures, in fit.poses order
@@ -56,16 +58,14 @@ def _fit(prepared: list[PreparedSubject], model: BodyModel, config: Config, tb=N
     shadow = torch.stack([p.shadow[used] for p in prepared])
     cameras = stack_cameras([p.subject.camera for p in prepared])
     person = person_data(config, masks, shadow, cameras, model.dtype)
-    fit = SilhouetteFit(
-        model, person, config.fit, (config.model.scale_min, config.model.scale_max)
-    )
+    fit = SilhouetteFit(model, person, config.fit, (config.model.scale_min, config.model.scale_max))
     images = torch.stack([p.images[used] for p in prepared])
     x, starts = start_params(fit, config, masks, images)
     if starts is not None:
         for name, info in zip(names, starts, strict=True):
             if info.message:
                 log.info("%s: initial guess %s: %s", name, info.source, info.message)
-    x, records = run_stages(fit, x, config, names, tb)
+    x, records = run_stages(fit, x, config, names, tb, stage_progress)
     return fit, x, starts, records
 
 
@@ -75,6 +75,7 @@ def fit_batch(
     config: Config,
     run_dir: Path,
     tb=None,
+    stage_progress: Callable[[str, int], object] | None = None,
 ) -> list[SubjectResult]:
     """Fit a batch of segmented subjects and write their outputs.
 
@@ -85,9 +86,11 @@ def fit_batch(
         run_dir: the run folder (subject outputs go to ``run_dir / name``).
         tb: optional TensorBoard logger
             (:class:`torchfit.pipeline.tensorboard.TensorBoardCallback`).
+        stage_progress: optional per-stage iteration bar factory
+            (:func:`torchfit.pipeline.stages.run_stages`).
     """
     start = time.perf_counter()
-    fit, x, starts, records = _fit(prepared, model, config, tb)
+    fit, x, starts, records = _fit(prepared, model, config, tb, stage_progress)
     seconds = (time.perf_counter() - start) / len(prepared)
 
     scales = model.expand_scales(fit.layout.group_scales(x))
@@ -138,6 +141,7 @@ def run(
     config: Config,
     run_dir: Path,
     progress: Callable[[int], object] | None = None,
+    stage_progress: Callable[[str, int], object] | None = None,
 ) -> list[SubjectResult]:
     """Run a whole dataset: the resolved config, per-subject outputs and summary.csv.
 
@@ -145,7 +149,10 @@ def run(
         config: the resolved configuration (``data.root`` must be set).
         run_dir: the run folder.
         progress: optional factory ``total -> bar`` with ``update(n)`` and ``close()``
-            (e.g. ``lambda n: tqdm(total=n)``).
+            (e.g. ``lambda n: tqdm(total=n)``), advanced per finished subject.
+        stage_progress: optional factory ``(description, total) -> bar`` for the current
+            batch's stages, advanced per solver iteration with the cost
+            (e.g. ``lambda d, n: tqdm(total=n, desc=d, leave=False)``).
 
     Returns:
         One :class:`SubjectResult` per subject, failed ones included, in dataset order.
@@ -196,7 +203,7 @@ def run(
             if not prepared:
                 continue
             try:
-                results = fit_batch(prepared, model, config, run_dir, tb)
+                results = fit_batch(prepared, model, config, run_dir, tb, stage_progress)
             except (TorchfitError, RuntimeError) as exc:
                 log.error("batch %s failed: %s", [p.subject.name for p in prepared], exc)
                 results = [

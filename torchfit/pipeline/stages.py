@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import torch
@@ -62,8 +63,42 @@ def start_params(fit: SilhouetteFit, config: Config, masks: torch.Tensor, images
     return parts_start(fit, masks, images, config.parts)
 
 
+class _Callbacks:
+    """Several solver callbacks as one (stops when any asks to)."""
+
+    def __init__(self, callbacks: list[Callable]) -> None:
+        self.callbacks = callbacks
+
+    def __call__(self, it) -> bool:
+        stop = False
+        for cb in self.callbacks:
+            stop = bool(cb(it)) or stop
+        return stop
+
+
+class _IterationProgress:
+    """Solver callback that advances a progress bar per iteration, with the cost."""
+
+    def __init__(self, bar) -> None:
+        self.bar = bar
+
+    def __call__(self, it) -> bool:
+        running = it.status == 0
+        cost = it.cost[running] if bool(running.any()) else it.cost
+        self.bar.update(1)
+        self.bar.set_postfix(
+            cost=f"{float(cost.median()):.4g}", running=f"{int(running.sum())}/{len(it.cost)}"
+        )
+        return False
+
+
 def run_stages(
-    fit: SilhouetteFit, x: torch.Tensor, config: Config, names: list[str], tb=None
+    fit: SilhouetteFit,
+    x: torch.Tensor,
+    config: Config,
+    names: list[str],
+    tb=None,
+    progress: Callable[[str, int], object] | None = None,
 ) -> tuple[torch.Tensor, list[list[StageRecord]]]:
     """Run every stage of ``config.fit.stages`` from ``x`` (B, P).
 
@@ -73,6 +108,9 @@ def run_stages(
         config: the run's config (``fit.method``, ``fit.stages``, ``solver``).
         names: the subjects' names (TensorBoard tags).
         tb: optional :class:`torchfit.pipeline.tensorboard.TensorBoardCallback` of the run.
+        progress: optional factory ``(description, total) -> bar`` (``update``,
+            ``set_postfix``, ``close``, as tqdm's) for a bar per stage that advances with every
+            solver iteration and shows the median cost of the subjects still running.
 
     Returns:
         (B, P) fitted parameters and, per subject, one :class:`StageRecord` per stage.
@@ -90,12 +128,27 @@ def run_stages(
                 (int(r.status[0]), float(r.cost[0]), int(r.nfev[0]), r.message[0]) for r in results
             ]
         else:
-            callback = None
+            callbacks: list[Callable] = []
             if tb is not None:
                 from torchfit.pipeline.tensorboard import TensorBoardCallback
 
-                callback = TensorBoardCallback(tb.writer, tag, names, log_every=1)
-            x, res = solve_stage(fit, x, stage, options, solver.jacobian, callback=callback)
+                callbacks.append(TensorBoardCallback(tb.writer, tag, names, log_every=1))
+            bar = None
+            if progress is not None:
+                bar = progress(f"{tag} ({len(names)} subjects)", options.max_iter)
+                callbacks.append(_IterationProgress(bar))
+            try:
+                x, res = solve_stage(
+                    fit,
+                    x,
+                    stage,
+                    options,
+                    solver.jacobian,
+                    callback=_Callbacks(callbacks) if callbacks else None,
+                )
+            finally:
+                if bar is not None:
+                    bar.close()
             per = [
                 (int(res.status[i]), float(res.cost[i]), int(res.n_iter[i]), res.message[i])
                 for i in range(len(names))
