@@ -6,7 +6,11 @@ Segments the six posture images of every subject, fits the template body (batche
 Levenberg-Marquardt, autograd Jacobian; ``--set fit.method=minpack_rendered`` runs the
 paper's rendered-contour MINPACK baseline instead) and writes runs/<run.name>/ (or --out):
 config.yaml, summary.csv, tb/ and per subject measurements.json, params.json,
-model.urdf + meshes/, model.glb and overlay_pose1..6.png. A rerun skips finished subjects.
+model.urdf + meshes/, model.glb, overlay_pose1..6.png and fingerprint.json. A rerun keeps
+the subjects whose fingerprint is unchanged and refits the others.
+
+Exit codes: 0 every subject fitted (ok or poor_fit), 1 some subject failed, 2 bad config or
+arguments, 3 the run folder cannot be written, 4 the dataset is missing or unreadable.
 """
 
 from __future__ import annotations
@@ -19,7 +23,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tqdm import tqdm  # noqa: E402
 
-from torchfit.config.cli import add_config_args, config_from_args, run_folder  # noqa: E402
+from torchfit.config.cli import (  # noqa: E402
+    EXIT_FAILED,
+    EXIT_OK,
+    add_config_args,
+    config_from_args,
+    exit_code,
+    run_folder,
+)
 from torchfit.errors import TorchfitError  # noqa: E402
 
 
@@ -42,14 +53,15 @@ def main(argv: list[str] | None = None) -> int:
         )
     except TorchfitError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return exit_code(exc)
     failed = [r for r in results if r.status == "failed"]
     for r in results:
         height = r.measurements.get("height_m")
         h = f"height {height:.3f} m" if height is not None else ""
-        print(f"{r.name:>16}  {r.status:<7} {h}  {r.message}")
+        kept = " (kept from an earlier run)" if r.resumed else ""
+        print(f"{r.name:>16}  {r.status:<8} {h}  {r.message}{kept}")
     print(f"outputs in {run_dir}/ ({len(results) - len(failed)} of {len(results)} subjects)")
-    return 1 if failed else 0
+    return EXIT_FAILED if failed else EXIT_OK
 
 
 if __name__ == "__main__":

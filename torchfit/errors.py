@@ -18,6 +18,7 @@ __all__ = [
     "CameraError",
     "ModelError",
     "SegmentationError",
+    "OutputError",
     "check_shape",
 ]
 
@@ -48,6 +49,13 @@ class ModelError(TorchfitError):
 
 class SegmentationError(TorchfitError):
     """Segmentation failed for an image (no person found, size mismatch, …)."""
+
+
+class OutputError(TorchfitError):
+    """A run's outputs cannot be written: a read-only or full disk, missing permissions, a
+    folder that vanished or a path through a regular file. The message names the path and the
+    system's reason. Not the caller's input, but raised the same way so that a tool reports it
+    in one line (``tools/fit.py`` exits with code 3)."""
 
 
 def check_shape(name: str, tensor: torch.Tensor, shape: Sequence[int | str | None]) -> None:

@@ -1,4 +1,11 @@
-"""Command-line plumbing shared by the tools: --config, --data, --out, --set."""
+"""Command-line plumbing shared by the tools: --config, --data, --out, --set, exit codes.
+
+Exit codes (README "Exit codes"): :data:`EXIT_OK` 0, every subject fitted (``ok`` or
+``poor_fit``: a poor fit is a result, to be checked in its overlays); :data:`EXIT_FAILED` 1,
+some subject failed (its reason in summary.csv); :data:`EXIT_CONFIG` 2, a bad config, argument
+or template; :data:`EXIT_OUTPUT` 3, the run folder cannot be written; :data:`EXIT_INPUT` 4, the
+dataset itself is missing or unreadable.
+"""
 
 from __future__ import annotations
 
@@ -9,8 +16,35 @@ from pathlib import Path
 
 from torchfit.config.loader import load_config
 from torchfit.config.schema import Config
+from torchfit.errors import DataError, OutputError, TorchfitError
 
-__all__ = ["add_config_args", "config_from_args", "run_folder"]
+__all__ = [
+    "add_config_args",
+    "config_from_args",
+    "run_folder",
+    "exit_code",
+    "EXIT_OK",
+    "EXIT_FAILED",
+    "EXIT_CONFIG",
+    "EXIT_OUTPUT",
+    "EXIT_INPUT",
+]
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_CONFIG = 2
+EXIT_OUTPUT = 3
+EXIT_INPUT = 4
+
+
+def exit_code(error: TorchfitError) -> int:
+    """The exit code of a run stopped by ``error``: 3 for an OutputError, 4 for a DataError
+    (the dataset), 2 otherwise (config, arguments, template)."""
+    if isinstance(error, OutputError):
+        return EXIT_OUTPUT
+    if isinstance(error, DataError):
+        return EXIT_INPUT
+    return EXIT_CONFIG
 
 
 def add_config_args(parser: argparse.ArgumentParser) -> None:
@@ -32,14 +66,15 @@ def add_config_args(parser: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace, schema: type = Config):
-    """Load the config named by ``args`` with ``--set`` overrides, then --data / --out."""
+    """Load the config named by ``args`` with ``--set`` overrides, then --data (made absolute
+    from the current directory) and --out."""
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
     config = load_config(args.config, list(args.overrides), schema)
     if args.data is not None:
-        data = dataclasses.replace(config.data, root=str(args.data))
+        data = dataclasses.replace(config.data, root=str(args.data.absolute()))
         config = dataclasses.replace(config, data=data)
     if args.out is not None:
         run = dataclasses.replace(config.run, out=str(args.out))

@@ -6,6 +6,12 @@ number): an unknown key or a value of the wrong type raises
 :class:`~torchfit.errors.ConfigError` naming the dotted key, the file and the valid keys or
 choices. Overrides use dotted keys, ``--set solver.max_iter=50``; the value is parsed as YAML
 (``50`` is an int, ``[1, 2]`` a list, ``null`` None).
+
+Input paths (:data:`PATH_KEYS`: ``data.root``, and ``model.template`` where it names a
+``.urdf`` file) are made absolute when loading: a relative path written in a config file is
+taken from the file's folder (so a config runs from any working directory), one given with
+``--set`` from the current directory. Output paths (``run.out``, the default ``runs/<name>``)
+stay relative to the current directory.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import re
 import types
 import typing
@@ -31,7 +38,9 @@ __all__ = [
     "config_to_dict",
     "apply_overrides",
     "save_config",
+    "config_to_yaml",
     "parse_yaml",
+    "PATH_KEYS",
     "replace_keys",
 ]
 
@@ -238,6 +247,23 @@ def apply_overrides(data: dict, overrides: list[str], source: str = "--set") -> 
     return data
 
 
+#: Keys that name input files or folders (made absolute by :func:`load_config`).
+PATH_KEYS = ("data.root", "model.template")
+
+
+def _absolute_paths(data: dict, base: Path) -> None:
+    """Make the relative :data:`PATH_KEYS` values in ``data`` absolute, from ``base``."""
+    for key in PATH_KEYS:
+        section, name = key.split(".")
+        node = data.get(section)
+        value = node.get(name) if isinstance(node, dict) else None
+        if not isinstance(value, str) or not value or os.path.isabs(value):
+            continue
+        if key == "model.template" and not value.lower().endswith(".urdf"):
+            continue  # a shipped template's name
+        node[name] = os.path.normpath(os.path.join(os.path.abspath(base), value))
+
+
 def load_config(
     path: str | Path | None,
     overrides: list[str] | None = None,
@@ -249,6 +275,9 @@ def load_config(
         path: the YAML file; ``None`` starts from the defaults.
         overrides: ``["solver.max_iter=50", ...]``.
         schema: the dataclass to build (default :class:`Config`).
+
+    Relative input paths (:data:`PATH_KEYS`) become absolute: from the file's folder when
+    the file sets them, from the current directory when an override does.
 
     Raises:
         ConfigError: for a missing file, invalid YAML, an unknown key or a wrong type; the
@@ -266,8 +295,10 @@ def load_config(
             raise ConfigError(f"{path}: invalid YAML: {exc}") from exc
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: the top level must be a mapping, got {type(data).__name__}")
+        _absolute_paths(data, path.parent)
     if overrides:
         apply_overrides(data, overrides)
+        _absolute_paths(data, Path.cwd())
         source = f"{source} (with --set overrides)"
     return config_from_dict(data, source, schema)
 
@@ -294,7 +325,13 @@ def _replace(node: Any, parts: list[str], value: Any, key: str) -> Any:
     return dataclasses.replace(node, **{parts[0]: child})
 
 
+def config_to_yaml(config: Any) -> str:
+    """The YAML text of a config (what :func:`save_config` writes)."""
+    return yaml.safe_dump(config_to_dict(config), sort_keys=False)
+
+
 def save_config(config: Any, path: str | Path) -> None:
-    """Write the resolved config as YAML."""
+    """Write the resolved config as YAML (the runs write it atomically with
+    :func:`torchfit.io.files.write_atomic` and :func:`config_to_yaml`)."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(yaml.safe_dump(config_to_dict(config), sort_keys=False))
+    Path(path).write_text(config_to_yaml(config))

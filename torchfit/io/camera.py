@@ -11,6 +11,7 @@ import yaml
 
 from torchfit.camera import ROTATION_TOLERANCE, Camera
 from torchfit.errors import CameraError
+from torchfit.io.files import write_atomic
 
 __all__ = [
     "load_camera",
@@ -127,6 +128,8 @@ def _read_yaml(path: Path) -> Any:
         raise CameraError(f"camera file not found: {path}")
     try:
         return yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CameraError(f"cannot read {path}: {exc}") from None
     except yaml.YAMLError as exc:
         raise CameraError(f"{path}: invalid YAML: {exc}") from exc
 
@@ -150,9 +153,7 @@ def load_camera(path: str | Path) -> Camera:
 
 def save_camera(camera: Camera, path: str | Path, index: int = 0) -> None:
     """Write camera ``index`` of the batch as ``camera.yaml`` (full float precision)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(_dump(camera_to_dict(camera, index)))
+    write_atomic(path, _dump(camera_to_dict(camera, index)))
 
 
 def load_stereo_cameras(path: str | Path) -> tuple[Camera, Camera]:
@@ -174,6 +175,4 @@ def load_stereo_cameras(path: str | Path) -> tuple[Camera, Camera]:
 
 def save_stereo_cameras(left: Camera, right: Camera, path: str | Path) -> None:
     """Write a stereo ``cameras.yaml`` from two single cameras."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(_dump({"left": camera_to_dict(left), "right": camera_to_dict(right)}))
+    write_atomic(path, _dump({"left": camera_to_dict(left), "right": camera_to_dict(right)}))

@@ -7,7 +7,6 @@ body with unit scales.
 from __future__ import annotations
 
 import json
-import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
@@ -16,6 +15,7 @@ import numpy as np
 import torch
 
 from torchfit.errors import ShapeError
+from torchfit.io.files import copy_atomic, make_dirs, write_atomic
 from torchfit.io.meshes import save_mesh
 
 __all__ = ["export_urdf", "export_mesh", "write_json"]
@@ -23,6 +23,11 @@ __all__ = ["export_urdf", "export_mesh", "write_json"]
 
 def export_urdf(model, scales: torch.Tensor, folder: str | Path) -> Path:
     """Write the scaled template as ``model.urdf`` + ``meshes/<segment>.obj`` (+ template.json).
+
+    ``template.json`` is the template's own (scale groups, the segments whose origins are the
+    measurement joints, landmark vertices), copied so that the folder loads back as a template
+    with the same groups and measurements. Every file is written atomically
+    (:func:`torchfit.io.files.write_atomic`), ``model.urdf`` after the meshes it names.
 
     Joint origins out of a segment are multiplied by that segment's scales and each mesh is
     scaled in its own frame, so the exported model at unit scale equals ``model`` at ``scales``.
@@ -40,7 +45,7 @@ def export_urdf(model, scales: torch.Tensor, folder: str | Path) -> Path:
         raise ShapeError(f"scales: expected shape ({t.num_segments}, 3), got {tuple(scales.shape)}")
     sc = scales.detach().cpu().double().numpy()
     folder = Path(folder)
-    (folder / "meshes").mkdir(parents=True, exist_ok=True)
+    make_dirs(folder / "meshes")
     root = ET.fromstring(t.urdf)
     for joint in root.iter("joint"):
         parent = joint.find("parent").get("link")
@@ -65,10 +70,10 @@ def export_urdf(model, scales: torch.Tensor, folder: str | Path) -> Path:
         mesh.set("filename", f"meshes/{name}.obj")
     ET.indent(root)
     path = folder / "model.urdf"
-    path.write_text('<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n")
     meta = t.urdf_path.parent / "template.json"
     if meta.is_file():
-        shutil.copyfile(meta, folder / "template.json")
+        copy_atomic(meta, folder / "template.json")
+    write_atomic(path, '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n")
     return path
 
 
@@ -92,8 +97,10 @@ def _plain(value: Any) -> Any:
 
 
 def write_json(path: str | Path, data: dict) -> Path:
-    """Write ``data`` (tensors and arrays allowed) as indented JSON; returns the path."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_plain(data), indent=2) + "\n")
-    return path
+    """Write ``data`` (tensors and arrays allowed) as indented JSON, atomically; returns the
+    path.
+
+    Raises:
+        OutputError: the file cannot be written.
+    """
+    return write_atomic(path, json.dumps(_plain(data), indent=2) + "\n")

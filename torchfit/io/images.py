@@ -1,5 +1,12 @@
 """Reading and writing images and masks, with errors that name the file.
 
+Files are read into memory in Python and decoded with ``cv2.imdecode``; PNG and JPEG files are
+first checked to be complete (every PNG chunk present with a correct checksum, up to ``IEND``;
+a JPEG ending with its end-of-image marker), so that a truncated or damaged file gives one
+:class:`~torchfit.errors.DataError` naming it, instead of libpng's own message on stderr or a
+JPEG silently decoded grey where the data ends. Images and masks are written atomically
+(:func:`torchfit.io.files.write_atomic`).
+
 Conventions: colour images are ``(H, W, 3)`` ``uint8`` RGB arrays on disk-side and
 ``(N, 3, H, W)`` ``float32`` tensors in ``[0, 1]`` on the torch side; masks are ``(H, W)``
 ``uint8`` arrays (``0`` background, ``255`` person when written by torchfit; ground-truth
@@ -8,6 +15,8 @@ label images keep their raw values, e.g. the CDnet labels 0/50/85/170/255).
 
 from __future__ import annotations
 
+import struct
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -16,6 +25,7 @@ import numpy as np
 import torch
 
 from torchfit.errors import DataError
+from torchfit.io.files import write_atomic
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -23,6 +33,7 @@ __all__ = [
     "read_image",
     "read_mask",
     "write_mask",
+    "write_image",
     "load_frames",
 ]
 
@@ -41,11 +52,43 @@ def list_images(folder: str | Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _incomplete(data: bytes, suffix: str) -> str | None:
+    """Why a PNG or JPEG file's bytes are not a whole file (None when they are, or for other
+    formats)."""
+    if suffix == ".png" and data.startswith(_PNG_SIGNATURE):
+        view, pos = memoryview(data), len(_PNG_SIGNATURE)
+        while pos + 8 <= len(data):
+            length, kind = struct.unpack(">I4s", view[pos : pos + 8])
+            end = pos + 12 + length
+            if end > len(data):
+                return f"truncated PNG file (the {kind.decode('latin-1')} chunk is cut off)"
+            if zlib.crc32(view[pos + 4 : end - 4]) != struct.unpack(">I", view[end - 4 : end])[0]:
+                return f"damaged PNG file (bad checksum in a {kind.decode('latin-1')} chunk)"
+            if kind == b"IEND":
+                return None
+            pos = end
+        return "truncated PNG file (no IEND chunk)"
+    if suffix in (".jpg", ".jpeg") and data.startswith(b"\xff\xd8"):
+        if not data.rstrip(b"\0\r\n ").endswith(b"\xff\xd9"):
+            return "truncated JPEG file (no end-of-image marker)"
+    return None
+
+
 def _read_uint8(path: Path, what: str) -> np.ndarray:
-    """The 8-bit pixels of an image file as OpenCV reads them; DataError naming ``path``."""
+    """The 8-bit pixels of an image file as OpenCV decodes them; DataError naming ``path``."""
     if not path.is_file():
         raise DataError(f"{what} not found: {path}")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DataError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    problem = _incomplete(data, path.suffix.lower())
+    if problem is not None:
+        raise DataError(f"cannot read {what} {path}: {problem}")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if img is None:
         raise DataError(f"cannot read {what} {path}: not a readable image file")
     if img.dtype != np.uint8:
@@ -112,7 +155,8 @@ def write_mask(path: str | Path, mask: np.ndarray | torch.Tensor) -> None:
         mask: ``(H, W)`` or ``(1, H, W)`` array or tensor; non-zero means person.
 
     Raises:
-        DataError: if ``mask`` is not 2-D after squeezing, or writing fails.
+        DataError: if ``mask`` is not 2-D after squeezing or the suffix is not an image format;
+        OutputError: the file cannot be written.
     """
     path = Path(path)
     if isinstance(mask, torch.Tensor):
@@ -122,9 +166,38 @@ def write_mask(path: str | Path, mask: np.ndarray | torch.Tensor) -> None:
         mask = mask[0]
     if mask.ndim != 2:
         raise DataError(f"write_mask({path}): expected a (H, W) mask, got shape {mask.shape}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), np.where(mask != 0, 255, 0).astype(np.uint8)):
-        raise DataError(f"cannot write mask {path} (unsupported suffix or unwritable folder)")
+    _write_pixels(path, np.where(mask != 0, 255, 0).astype(np.uint8), "mask")
+
+
+def _write_pixels(path: Path, pixels: np.ndarray, what: str) -> None:
+    try:
+        ok, encoded = cv2.imencode(path.suffix, pixels)
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise DataError(f"cannot write {what} {path}: unsupported image suffix {path.suffix!r}")
+    write_atomic(path, encoded.tobytes())
+
+
+def write_image(path: str | Path, image: np.ndarray) -> None:
+    """Write a colour image atomically; the format follows the suffix (use ``.png``).
+
+    Args:
+        path: output file (its folder is created).
+        image: ``(H, W, 3)`` ``uint8`` RGB array.
+
+    Raises:
+        DataError: a wrong shape or dtype, or an unsupported suffix; OutputError: the file
+            cannot be written.
+    """
+    path = Path(path)
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise DataError(
+            f"write_image({path}): expected a (H, W, 3) uint8 image, got {image.dtype} "
+            f"{image.shape}"
+        )
+    _write_pixels(path, np.ascontiguousarray(image[:, :, ::-1]), "image")
 
 
 def load_frames(

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from torchfit.errors import DataError, ModelError
+from torchfit.io.files import write_atomic
 
 __all__ = ["load_mesh_arrays", "save_mesh"]
 
@@ -40,7 +41,8 @@ def load_mesh_arrays(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def save_mesh(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
-    """Write a triangle mesh; the format follows the suffix (``.obj``, ``.glb``, ``.ply``).
+    """Write a triangle mesh atomically; the format follows the suffix (``.obj``, ``.glb``,
+    ``.ply``, ``.stl``).
 
     Args:
         vertices: (V, 3) metres.
@@ -51,7 +53,5 @@ def save_mesh(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path
     path = Path(path)
     if path.suffix.lower() not in {".obj", ".glb", ".ply", ".stl"}:
         raise DataError(f"save_mesh: unsupported mesh format {path.suffix!r} for {path}")
-    path.parent.mkdir(parents=True, exist_ok=True)
     mesh = trimesh.Trimesh(np.asarray(vertices), np.asarray(faces), process=False)
-    mesh.export(path)
-    return path
+    return write_atomic(path, mesh.export(file_type=path.suffix.lower()[1:]))

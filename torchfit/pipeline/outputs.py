@@ -1,10 +1,19 @@
 """What a fit run writes: per subject measurements.json, params.json, the fitted model and
-overlays; per run summary.csv (README "What a run writes")."""
+overlays; per run summary.csv (README "What a run writes").
+
+Every file is written atomically (:mod:`torchfit.io.files`). A subject's folder is finished
+when its ``fingerprint.json`` (:mod:`torchfit.pipeline.fingerprint`), written last, is there;
+before a subject is written again, :func:`clear_outputs` removes that file first, then the rest.
+summary.csv rows of finished subjects are read back from their files
+(:func:`result_from_disk`), so a resumed row is the row its fit wrote.
+"""
 
 from __future__ import annotations
 
 import csv
+import io
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,8 +24,9 @@ from torchfit.body.model import BodyModel
 from torchfit.body.postures import POSTURES
 from torchfit.fit.model_contour import ContourSelection
 from torchfit.fit.problem import SilhouetteFit
-from torchfit.io.dataset import Subject
 from torchfit.io.export import export_mesh, export_urdf
+from torchfit.io.files import remove_files, remove_temporary, write_atomic
+from torchfit.io.images import write_image
 from torchfit.measurements import MEASUREMENT_KEYS
 from torchfit.pipeline.prepare import PreparedSubject
 from torchfit.pipeline.stages import StageRecord
@@ -24,23 +34,33 @@ from torchfit.status import SubjectStatus
 from torchfit.viz.overlay import fit_overlay
 
 __all__ = [
-    "DONE_FILES",
+    "OUTPUT_FILES",
     "SubjectResult",
     "pose_record",
     "params_document",
     "write_overlays",
     "write_model",
     "write_summary",
-    "resumed_result",
+    "result_from_disk",
+    "clear_outputs",
 ]
 
-#: A subject whose folder holds these is finished (a rerun resumes it).
-DONE_FILES = ("measurements.json", "params.json")
+#: The files of a subject folder that a run writes (besides ``overlay_pose<j>.png`` and
+#: ``meshes/<segment>.obj``), the done marker first.
+OUTPUT_FILES = (
+    "fingerprint.json",
+    "measurements.json",
+    "params.json",
+    "model.urdf",
+    "template.json",
+    "model.glb",
+    "model.obj",
+)
 
 
 @dataclass
 class SubjectResult:
-    """Outcome of one subject (a row of summary.csv)."""
+    """Outcome of one subject (a row of summary.csv; ``resumed``: kept from an earlier run)."""
 
     name: str
     status: SubjectStatus
@@ -49,6 +69,7 @@ class SubjectResult:
     final_cost: float | None = None
     iterations: int | None = None
     seconds: float = 0.0
+    resumed: bool = False
 
     def row(self) -> dict:
         """The summary.csv row."""
@@ -88,6 +109,7 @@ def params_document(
     method: str,
     start: dict,
     stages: list[StageRecord],
+    seconds: float = 0.0,
 ) -> dict:
     """The params.json document of subject ``i``.
 
@@ -100,6 +122,7 @@ def params_document(
         method: ``fit.method``.
         start: how its start was made (``{"source": "template"}`` or a StartInfo dict).
         stages: its stage records.
+        seconds: wall time spent on it (reading, segmenting, its share of the batch's fit).
     """
     model = fit.model
     group = fit.layout.group_scales(x)[i]
@@ -113,6 +136,7 @@ def params_document(
         "initial_guess": start,
         "poses": {f"pose{j}": pose_record(fit, x, i, j) for j in fit.poses},
         "stages": [s.to_dict() for s in stages],
+        "seconds": round(seconds, 3),
     }
 
 
@@ -134,8 +158,6 @@ def write_overlays(
         i: the subject's row in the batch.
         tb: optional :class:`torchfit.pipeline.tensorboard.TensorBoardCallback`.
     """
-    import cv2
-
     name = prepared.subject.name
     for j in fit.poses:
         image = prepared.images[j - 1].permute(1, 2, 0).numpy()
@@ -146,7 +168,7 @@ def write_overlays(
             f"{name} pose{j} {POSTURES[j - 1].name}",
             prepared.shadow[j - 1].numpy() if fit.person.uncertain is not None else None,
         )
-        cv2.imwrite(str(folder / f"overlay_pose{j}.png"), overlay[:, :, ::-1])
+        write_image(folder / f"overlay_pose{j}.png", overlay)
         if tb is not None:
             tb.add_image(f"overlay/{name}/pose{j}", overlay)
 
@@ -166,21 +188,46 @@ def write_model(model: BodyModel, scales: torch.Tensor, folder: Path, mesh_forma
 
 
 def write_summary(results: list[SubjectResult], path: Path) -> None:
-    """Write summary.csv, one row per subject."""
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(SubjectResult("", SubjectStatus.OK).row()))
-        writer.writeheader()
-        writer.writerows(r.row() for r in results)
+    """Write summary.csv, one row per subject (atomically)."""
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=list(SubjectResult("", SubjectStatus.OK).row()))
+    writer.writeheader()
+    writer.writerows(r.row() for r in results)
+    write_atomic(path, text.getvalue())
 
 
-def resumed_result(subject: Subject, folder: Path) -> SubjectResult | None:
-    """The result of a subject finished by an earlier run (None when it is not finished)."""
-    if not all((folder / f).is_file() for f in DONE_FILES):
-        return None
+def result_from_disk(name: str, folder: Path) -> SubjectResult | None:
+    """A finished subject's summary row, read back from its measurements.json and params.json
+    (None when they are missing or unreadable)."""
     try:
-        data = json.loads((folder / "measurements.json").read_text())
-        status = SubjectStatus(data.get("status", "ok"))
-    except (json.JSONDecodeError, ValueError):
+        measured = json.loads((folder / "measurements.json").read_text())
+        params = json.loads((folder / "params.json").read_text())
+        stages = params["stages"]
+        return SubjectResult(
+            name,
+            SubjectStatus(params["status"]),
+            params["message"],
+            {k: float(measured[k]) for k in MEASUREMENT_KEYS if k in measured},
+            final_cost=float(stages[-1]["cost"]) if stages else math.nan,
+            iterations=sum(int(s["iterations"]) for s in stages),
+            seconds=float(params.get("seconds", 0.0)),
+            resumed=True,
+        )
+    except (OSError, ValueError, KeyError, TypeError, IndexError):
         return None
-    values = {k: float(data[k]) for k in MEASUREMENT_KEYS if k in data}
-    return SubjectResult(subject.name, status, "resumed: outputs on disk", values)
+
+
+def clear_outputs(folder: Path) -> None:
+    """Remove what a run wrote into a subject folder, the done marker first (other files are
+    left alone).
+
+    Raises:
+        OutputError: a file cannot be removed.
+    """
+    if not folder.is_dir():
+        return
+    remove_files(folder / f for f in OUTPUT_FILES)
+    remove_files(sorted(folder.glob("overlay_pose*.png")))
+    remove_files(sorted(folder.glob("meshes/*.obj")))
+    remove_temporary(folder)
+    remove_temporary(folder / "meshes")

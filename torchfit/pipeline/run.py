@@ -8,7 +8,11 @@ write its outputs (:mod:`torchfit.pipeline.outputs`); the run gets summary.csv, 
 config and TensorBoard event files under ``tb/``.
 
 One bad subject never stops the others: it gets ``status = failed`` and the reason, and what
-finished is on disk (a rerun resumes, skipping finished subjects).
+finished is on disk. Each finished subject's folder ends with ``fingerprint.json``
+(:mod:`torchfit.pipeline.fingerprint`); a rerun keeps the subjects whose fingerprint is
+unchanged and refits the others. Every file is written atomically, so a run killed at any
+moment and run again ends as a clean run would. A file that cannot be written stops the run
+with :class:`~torchfit.errors.OutputError` (what finished before stays complete).
 """
 
 from __future__ import annotations
@@ -23,17 +27,26 @@ import torch
 from torchfit.body.measure import measure_model
 from torchfit.body.model import BodyModel
 from torchfit.camera import stack_cameras
-from torchfit.config.loader import save_config
+from torchfit.config.loader import config_to_yaml
 from torchfit.config.schema import Config
-from torchfit.errors import DataError, TorchfitError
+from torchfit.errors import ConfigError, DataError, OutputError, TorchfitError
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.io.dataset import Subject, load_dataset
 from torchfit.io.export import write_json
+from torchfit.io.files import make_dirs, remove_temporary, write_atomic
+from torchfit.pipeline.fingerprint import (
+    Fingerprint,
+    config_digest,
+    read_fingerprint,
+    template_digest,
+    write_fingerprint,
+)
 from torchfit.pipeline.judge import judge
 from torchfit.pipeline.outputs import (
     SubjectResult,
+    clear_outputs,
     params_document,
-    resumed_result,
+    result_from_disk,
     write_model,
     write_overlays,
     write_summary,
@@ -76,8 +89,9 @@ def fit_batch(
     run_dir: Path,
     tb=None,
     stage_progress: Callable[[str, int], object] | None = None,
+    fingerprints: dict[str, Fingerprint] | None = None,
 ) -> list[SubjectResult]:
-    """Fit a batch of segmented subjects and write their outputs.
+    """Fit a batch of segmented subjects and write their outputs, ``fingerprint.json`` last.
 
     Args:
         prepared: the segmented subjects.
@@ -88,7 +102,18 @@ def fit_batch(
             (:class:`torchfit.pipeline.tensorboard.TensorBoardCallback`).
         stage_progress: optional per-stage iteration bar factory
             (:func:`torchfit.pipeline.stages.run_stages`).
+        fingerprints: subject name -> its :class:`Fingerprint` (computed when missing).
+
+    Raises:
+        OutputError: a file cannot be written (subjects written before are complete).
     """
+    fingerprints = dict(fingerprints or {})
+    run_fp = None
+    for prep in prepared:
+        if prep.subject.name not in fingerprints:
+            if run_fp is None:
+                run_fp = Fingerprint(config_digest(config), template_digest(model.template))
+            fingerprints[prep.subject.name] = run_fp.for_subject(prep.subject)
     start = time.perf_counter()
     fit, x, starts, records = _fit(prepared, model, config, tb, stage_progress)
     seconds = (time.perf_counter() - start) / len(prepared)
@@ -101,7 +126,8 @@ def fit_batch(
     for i, prep in enumerate(prepared):
         name = prep.subject.name
         folder = run_dir / name
-        folder.mkdir(parents=True, exist_ok=True)
+        clear_outputs(folder)  # fingerprint.json first: the folder is not finished until the end
+        make_dirs(folder)
         quality = {
             f"pose{j}": {"e_P_rms_px": e_p, "e_M_px": e_m}
             for j, (e_p, e_m) in fit.residual_layout.per_pose_quality(final[i]).items()
@@ -116,25 +142,54 @@ def fit_batch(
                     tb.add_scalar(f"residual/{name}/{pose}_{key}", value, 0)
         write_model(model, scales[i], folder, config.output.mesh_format)
         start_info = starts[i].to_dict() if starts else {"source": "template"}
-        write_json(
-            folder / "params.json",
-            params_document(
-                fit, x, i, scales[i], status, message, config.fit.method, start_info, records[i]
-            ),
+        document = params_document(
+            fit,
+            x,
+            i,
+            scales[i],
+            status,
+            message,
+            config.fit.method,
+            start_info,
+            records[i],
+            seconds + prep.seconds,
         )
+        write_json(folder / "params.json", document)
         write_json(folder / "measurements.json", {**measurements, "status": str(status)})
-        results.append(
-            SubjectResult(
-                name,
-                status,
-                message,
-                measurements,
-                final_cost=records[i][-1].cost,
-                iterations=sum(s.iterations for s in records[i]),
-                seconds=seconds + prep.seconds,
-            )
-        )
+        write_fingerprint(folder, fingerprints[name])
+        result = result_from_disk(name, folder)
+        if result is None:  # the files just written cannot be read back
+            raise OutputError(f"cannot read back the outputs written to {folder}")
+        result.resumed = False
+        results.append(result)
     return results
+
+
+def _kept(
+    subjects: list[Subject], run_fp: Fingerprint, run_dir: Path, resume: bool
+) -> tuple[dict[str, SubjectResult], dict[str, Fingerprint]]:
+    """The subjects an earlier run finished with today's fingerprint (their results), and the
+    fingerprint of every other readable subject."""
+    kept: dict[str, SubjectResult] = {}
+    fingerprints: dict[str, Fingerprint] = {}
+    for subject in subjects:
+        if not subject.ok:
+            continue
+        try:
+            fingerprint = run_fp.for_subject(subject)
+        except DataError as exc:  # unreadable inputs: fitting it reports the problem
+            log.debug("%s: %s", subject.name, exc)
+            continue
+        fingerprints[subject.name] = fingerprint
+        folder = run_dir / subject.name
+        previous = read_fingerprint(folder) if resume else None
+        change = fingerprint.changes(previous)
+        result = result_from_disk(subject.name, folder) if resume and not change else None
+        if result is not None:
+            kept[subject.name] = result
+        elif previous is not None:
+            log.info("%s: refitting (%s)", subject.name, change or "run.resume is false")
+    return kept, fingerprints
 
 
 def run(
@@ -144,6 +199,10 @@ def run(
     stage_progress: Callable[[str, int], object] | None = None,
 ) -> list[SubjectResult]:
     """Run a whole dataset: the resolved config, per-subject outputs and summary.csv.
+
+    Subjects whose outputs an earlier run finished with the same fingerprint are kept
+    (``run.resume``, :mod:`torchfit.pipeline.fingerprint`); the run folder and its
+    ``config.yaml`` are written only once the dataset and the template have loaded.
 
     Args:
         config: the resolved configuration (``data.root`` must be set).
@@ -156,29 +215,31 @@ def run(
 
     Returns:
         One :class:`SubjectResult` per subject, failed ones included, in dataset order.
+
+    Raises:
+        ConfigError: ``data.root`` is not set; DataError: the dataset is missing or empty;
+        ModelError: the template cannot be loaded; OutputError: the run folder cannot be
+        written (subjects finished before are complete on disk).
     """
     if not config.data.root:
-        raise DataError("data.root is not set: pass --data DIR or set data.root in the config")
+        raise ConfigError("data.root is not set: pass --data DIR or set data.root in the config")
     apply_runtime(config.run)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    save_config(config, run_dir / "config.yaml")
     subjects = load_dataset(config.data.root, config.data.subjects)
     if not subjects:
         raise DataError(f"no subject folders found in {config.data.root}")
     model = BodyModel(
         config.model.template, device=config.run.device, dtype=torch_dtype(config.run.dtype)
     )
+    run_fp = Fingerprint(config_digest(config), template_digest(model.template))
+    done, fingerprints = _kept(subjects, run_fp, run_dir, config.run.resume)
+    todo = [s for s in subjects if s.name not in done]
+
+    make_dirs(run_dir)
+    remove_temporary(run_dir)
+    write_atomic(run_dir / "config.yaml", config_to_yaml(config))
     bar = progress(len(subjects)) if progress else None
-    done: dict[str, SubjectResult] = {}
-    todo: list[Subject] = []
-    for subject in subjects:
-        previous = resumed_result(subject, run_dir / subject.name) if config.run.resume else None
-        if previous is not None:
-            done[subject.name] = previous
-            if bar:
-                bar.update(1)
-        else:
-            todo.append(subject)
+    if bar and done:
+        bar.update(len(done))
     tb = None
     if config.output.tensorboard and todo:
         from torchfit.pipeline.tensorboard import TensorBoardCallback
@@ -199,17 +260,24 @@ def run(
                     prepared.append(prepare_subject(subject, config))
                 except (TorchfitError, OSError) as exc:
                     log.error("%s: %s", subject.name, exc)
+                    clear_outputs(run_dir / subject.name)
                     finish(SubjectResult(subject.name, SubjectStatus.FAILED, str(exc)))
             if not prepared:
                 continue
             try:
-                results = fit_batch(prepared, model, config, run_dir, tb, stage_progress)
+                results = fit_batch(
+                    prepared, model, config, run_dir, tb, stage_progress, fingerprints
+                )
+            except OutputError:
+                raise
             except (TorchfitError, RuntimeError) as exc:
                 log.error("batch %s failed: %s", [p.subject.name for p in prepared], exc)
-                results = [
-                    SubjectResult(p.subject.name, SubjectStatus.FAILED, f"fit failed: {exc}")
-                    for p in prepared
-                ]
+                results = []
+                for p in prepared:
+                    clear_outputs(run_dir / p.subject.name)
+                    results.append(
+                        SubjectResult(p.subject.name, SubjectStatus.FAILED, f"fit failed: {exc}")
+                    )
             for result in results:
                 finish(result)
     finally:

@@ -4,27 +4,64 @@
 for every problem of the batch and every iteration, the cost, the damping and the step norm as
 scalars ``{tag_prefix}/{name}/cost``, ``.../damping`` and ``.../step_norm`` (global step = the
 solver iteration). Problems that have stopped are no longer logged.
+
+TensorBoard is a side channel of a run: when its event file cannot be written (a full or
+read-only disk), logging stops with one warning naming the folder and the run goes on. The
+event file is written by a background thread of TensorBoard's ``EventFileWriter``; its
+failure is reported by the next call from the run (the thread's own traceback is not
+printed).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import logging
+import threading
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from torch.utils.tensorboard import SummaryWriter
 
-from torchfit.errors import TorchfitError
+from torchfit.errors import OutputError, TorchfitError
 from torchfit.solver.result import LMIterate, LMStatus
 
 __all__ = ["TensorBoardCallback"]
+
+log = logging.getLogger(__name__)
+
+_previous_hook = threading.excepthook
+
+
+def _quiet_writer_thread(args: threading.ExceptHookArgs) -> None:
+    """``threading.excepthook`` that leaves TensorBoard's event writer thread's failure to the
+    main thread (which reports it in one line) and hands every other thread to the previous
+    hook."""
+    thread = type(args.thread).__name__ if args.thread is not None else ""
+    if thread == "_AsyncWriterThread" and isinstance(args.exc_value, Exception):
+        log.debug("TensorBoard writer thread: %s", args.exc_value)
+        return
+    _previous_hook(args)
+
+
+def _guarded(writer: SummaryWriter, action: Callable[[], object], always: bool = False) -> None:
+    """Run ``action`` (a call on ``writer``) unless the writer has failed (or ``always``); on
+    the first failure, warn once and stop using the writer."""
+    failed = getattr(writer, "_torchfit_failed", False)
+    if failed and not always:
+        return
+    try:
+        action()
+    except Exception as exc:  # OSError from the disk, or what the writer thread stored
+        writer._torchfit_failed = True
+        if not failed:
+            log.warning("TensorBoard logging stopped: cannot write to %s: %s", writer.log_dir, exc)
 
 
 class TensorBoardCallback:
     """Log per-problem cost, damping and step norm of a batched solve to TensorBoard.
 
     Args:
-        log_dir: a folder for a new ``SummaryWriter`` (created if missing), or a writer to use
-            (then the caller closes it).
+        log_dir: a folder for a new ``SummaryWriter`` (created if missing; OutputError when it
+            cannot be), or a writer to use (then the caller closes it).
         tag_prefix: first part of every tag, e.g. ``"stage1"``.
         problem_names: one name per problem (length ``B``); default ``"0"``, ``"1"``, ….
         log_every: log every this many iterations (and always the last of each problem).
@@ -45,7 +82,12 @@ class TensorBoardCallback:
             self.writer = log_dir
             self._owns_writer = False
         elif isinstance(log_dir, (str, Path)):
-            self.writer = SummaryWriter(log_dir=str(log_dir))
+            if threading.excepthook is not _quiet_writer_thread:
+                threading.excepthook = _quiet_writer_thread
+            try:
+                self.writer = SummaryWriter(log_dir=str(log_dir))
+            except OSError as exc:
+                raise OutputError(f"cannot create {log_dir}: {exc.strerror or exc}") from None
             self._owns_writer = True
         else:
             raise TorchfitError(
@@ -84,30 +126,29 @@ class TensorBoardCallback:
             if b in self._done:
                 continue
             tag = f"{self.tag_prefix}/{name}"
-            self.writer.add_scalar(f"{tag}/cost", cost[b], it.iteration)
-            self.writer.add_scalar(f"{tag}/damping", damping[b], it.iteration)
-            self.writer.add_scalar(f"{tag}/step_norm", step[b], it.iteration)
+            for key, values in (("cost", cost), ("damping", damping), ("step_norm", step)):
+                self.add_scalar(f"{tag}/{key}", values[b], it.iteration)
             if just_done:
                 self._done.add(b)
         return False
 
     def add_image(self, tag: str, image, step: int = 0) -> None:
         """Log an (H, W, 3) uint8 RGB image (e.g. a fit overlay)."""
-        self.writer.add_image(tag, image, step, dataformats="HWC")
+        _guarded(self.writer, lambda: self.writer.add_image(tag, image, step, dataformats="HWC"))
 
     def add_scalar(self, tag: str, value: float, step: int = 0) -> None:
         """Log one scalar (e.g. a final per-pose residual)."""
-        self.writer.add_scalar(tag, value, step)
+        _guarded(self.writer, lambda: self.writer.add_scalar(tag, value, step))
 
     def flush(self) -> None:
         """Write pending events to disk."""
-        self.writer.flush()
+        _guarded(self.writer, self.writer.flush)
 
     def close(self) -> None:
         """Flush, and close the writer if this object created it."""
-        self.writer.flush()
+        self.flush()
         if self._owns_writer:
-            self.writer.close()
+            _guarded(self.writer, self.writer.close, always=True)
 
     def __enter__(self) -> TensorBoardCallback:
         return self
