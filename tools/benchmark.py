@@ -32,8 +32,13 @@ import yaml  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from torchfit.config import replace_keys  # noqa: E402
-from torchfit.config.cli import add_config_args, config_from_args, run_folder  # noqa: E402
-from torchfit.errors import DataError, TorchfitError  # noqa: E402
+from torchfit.config.cli import (  # noqa: E402
+    add_config_args,
+    config_from_args,
+    exit_code,
+    run_folder,
+)
+from torchfit.errors import ConfigError, DataError, TorchfitError  # noqa: E402
 from torchfit.eval.report import (  # noqa: E402
     LABELS,
     REPORT_KEYS,
@@ -70,7 +75,7 @@ class _Run(NamedTuple):
 
 def _truths(config) -> tuple[dict[str, dict[str, float]], list[str]]:
     if not config.data.root:
-        raise DataError("data.root is not set: pass --data DIR or set data.root in the config")
+        raise ConfigError("data.root is not set: pass --data DIR or set data.root in the config")
     truths, notes = collect_truths(_subject_folders(config.data.root, config.data.subjects))
     if not truths:
         raise DataError(f"no subject with a valid truth.json in {config.data.root}")
@@ -114,13 +119,13 @@ def _from_results(args: argparse.Namespace) -> _Run:
     else:
         saved = run_dir / "config.yaml"
         if not saved.is_file():
-            raise DataError(f"{saved}: not found; pass --data DIR to name the dataset")
+            raise ConfigError(f"{saved}: not found; pass --data DIR to name the dataset")
         try:  # only data.root is needed: read it without the (changing) config schema
             root = (yaml.safe_load(saved.read_text()) or {}).get("data", {}).get("root")
         except (OSError, yaml.YAMLError, AttributeError) as exc:
-            raise DataError(f"{saved}: cannot read data.root ({exc}); pass --data DIR") from exc
+            raise ConfigError(f"{saved}: cannot read data.root ({exc}); pass --data DIR") from exc
         if not root:
-            raise DataError(f"{saved}: data.root is not set; pass --data DIR")
+            raise ConfigError(f"{saved}: data.root is not set; pass --data DIR")
     folders = _subject_folders(root, None)
     wanted = {r.name: folders[r.name] for r in results if r.name in folders}
     truths, notes = collect_truths(wanted)
@@ -187,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     except TorchfitError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return exit_code(exc)
     summary = summarize(rows)
     print(f"method: {summary.method}")
     print(

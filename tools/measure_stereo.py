@@ -17,18 +17,21 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import logging
 import sys
+from pathlib import Path
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
-from torchfit.config import save_config
-from torchfit.config.cli import add_config_args, config_from_args, run_folder
-from torchfit.errors import TorchfitError
+from torchfit.config import config_to_yaml
+from torchfit.config.cli import add_config_args, config_from_args, exit_code, run_folder
+from torchfit.errors import OutputError, TorchfitError
 from torchfit.io.dataset import load_dataset
 from torchfit.io.export import write_json
+from torchfit.io.files import write_atomic
+from torchfit.io.images import write_image
 from torchfit.parts import STEREO_MEASUREMENT_KEYS, project_joints
 from torchfit.pipeline.stereo import measure_stereo_pair
 from torchfit.viz.parts import draw_labelling
@@ -67,8 +70,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = run_folder(config)
-    out.mkdir(parents=True, exist_ok=True)
-    save_config(config, out / "config.yaml")
+    try:
+        return _measure(config, subjects, out)
+    except OutputError as exc:  # the run folder cannot be written
+        print(f"error: {exc}", file=sys.stderr)
+        return exit_code(exc)
+
+
+def _csv(rows: list[dict], fields: list[str]) -> str:
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=fields, restval="")
+    writer.writeheader()
+    writer.writerows(rows)
+    return text.getvalue()
+
+
+def _measure(config, subjects, out: Path) -> int:
+    write_atomic(out / "config.yaml", config_to_yaml(config))
     rows, error_rows = [], []
     for subject in tqdm(subjects, desc="stereo", unit="subject"):
         row = {"subject": subject.name}
@@ -77,7 +95,6 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(row)
             continue
         folder = out / subject.name
-        folder.mkdir(parents=True, exist_ok=True)
         try:
             result = measure_stereo_pair(subject.stereo, config.parts, config.segmentation)
         except TorchfitError as exc:  # an unreadable image: this subject only
@@ -90,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
             cam = getattr(subject.stereo, side)
             marks = project_joints(true_joints, cam) if true_joints else None
             picture = draw_labelling(view.image, view.labelling, view.mask, marks)
-            cv2.imwrite(str(folder / f"overlay_{side}.png"), picture[..., ::-1])
+            write_image(folder / f"overlay_{side}.png", picture)
         row.update(
             status=result.status, failed_rule=result.failed_rule or "", message=result.message
         )
@@ -104,19 +121,14 @@ def main(argv: list[str] | None = None) -> int:
             tqdm.write(f"FAILED {subject.name}: {result.message}")
         rows.append(row)
     fields = ["subject", "status", "failed_rule", "message", *STEREO_MEASUREMENT_KEYS]
-    with open(out / "summary.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=fields, restval="")
-        writer.writeheader()
-        writer.writerows(rows)
+    write_atomic(out / "summary.csv", _csv(rows, fields))
     if error_rows:
         keys = sorted({k for r in error_rows for k in r} - {"subject"})
-        with open(out / "errors.csv", "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=["subject", *keys], restval="")
-            writer.writeheader()
-            for r in error_rows:
-                writer.writerow(
-                    {k: (f"{v:.2f}" if isinstance(v, float) else v) for k, v in r.items()}
-                )
+        formatted = [
+            {k: (f"{v:.2f}" if isinstance(v, float) else v) for k, v in r.items()}
+            for r in error_rows
+        ]
+        write_atomic(out / "errors.csv", _csv(formatted, ["subject", *keys]))
     failed = sum(r["status"] == "failed" for r in rows)
     skipped = sum(r["status"] == "skipped" for r in rows)
     measured = len(rows) - failed - skipped

@@ -342,7 +342,10 @@ def load_dataset(root: str | Path, subjects: list[str] | None = None) -> list[Su
     """
     root = Path(root)
     if root.is_dir():
-        folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+        try:
+            folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+        except OSError as exc:
+            raise DataError(f"root: cannot list {root}: {exc.strerror}") from None
     elif root.is_file():
         folders = _read_manifest(root)
     else:

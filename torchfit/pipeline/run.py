@@ -182,13 +182,16 @@ def _kept(
             continue
         fingerprints[subject.name] = fingerprint
         folder = run_dir / subject.name
-        previous = read_fingerprint(folder) if resume else None
-        change = fingerprint.changes(previous)
-        result = result_from_disk(subject.name, folder) if resume and not change else None
-        if result is not None:
-            kept[subject.name] = result
-        elif previous is not None:
-            log.info("%s: refitting (%s)", subject.name, change or "run.resume is false")
+        previous = read_fingerprint(folder)
+        change = fingerprint.changes(previous) if resume else "run.resume is false"
+        if not change:
+            result = result_from_disk(subject.name, folder)
+            if result is not None:
+                kept[subject.name] = result
+                continue
+            change = "its outputs cannot be read"
+        if previous is not None:
+            log.info("%s: refitting (%s)", subject.name, change)
     return kept, fingerprints
 
 
