@@ -30,7 +30,8 @@ def test_write_atomic_replaces_whole_files_and_leaves_no_temporary(tmp_path):
     write_atomic(path, b"second")
     assert path.read_text() == "second"
     assert sorted(p.name for p in path.parent.iterdir()) == ["b.json"]
-    assert (path.stat().st_mode & 0o777) == 0o644
+    (tmp_path / "plain").write_text("")  # the permissions open() gives
+    assert path.stat().st_mode == (tmp_path / "plain").stat().st_mode
     copy_atomic(path, tmp_path / "c.json")
     assert (tmp_path / "c.json").read_bytes() == b"second"
 
@@ -235,3 +236,34 @@ def test_data_root_is_relative_to_the_config_file(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     cfg = load_config(folder / "c.yaml", ["data.root=mine"])
     assert cfg.data.root == str(tmp_path / "mine")
+
+
+def test_a_tensorboard_file_that_cannot_be_written_is_one_warning(tmp_path):
+    # the event file is written by TensorBoard's writer thread; with a file-size limit its
+    # writes fail (EFBIG): one warning from the run, no traceback from the thread
+    script = (
+        "import logging, resource, signal, numpy as np\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))\n"
+        "logging.basicConfig(format='%(levelname)s %(message)s')\n"
+        "from torchfit.pipeline.tensorboard import TensorBoardCallback\n"
+        "tb = TensorBoardCallback(__import__('sys').argv[1], 'fit')\n"
+        "image = np.random.default_rng(0).integers(0, 255, (200, 200, 3), dtype=np.uint8)\n"
+        "for step in range(5):\n"
+        "    tb.add_image('overlay', image, step)\n"
+        "    tb.add_scalar('cost', 1.0, step)\n"
+        "    tb.flush()\n"
+        "tb.close()\n"
+        "print('finished')\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script, str(tmp_path / "tb")],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    assert proc.returncode == 0 and "finished" in proc.stdout, proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception in thread" not in proc.stderr
+    warnings = [line for line in proc.stderr.splitlines() if "TensorBoard" in line]
+    assert len(warnings) == 1 and "File too large" in warnings[0], proc.stderr
+    assert str(tmp_path / "tb") in warnings[0]

@@ -3,6 +3,7 @@ run again ends as a clean run), faults of the environment as one-line errors wit
 exit codes, through tools/fit.py in fresh processes."""
 
 import csv
+import importlib.util
 import io
 import json
 import os
@@ -15,6 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 from template_subjects import make_template_subject
 
 from torchfit.body.model import BodyModel
@@ -76,7 +78,11 @@ def snapshot(out: Path) -> dict[str, bytes]:
         if not path.is_file() or rel.startswith("tb/"):
             continue
         data = path.read_bytes()
-        if path.name == "params.json":
+        if rel == "config.yaml":  # the same but for where it is
+            doc = yaml.safe_load(data)
+            assert doc["run"].pop("out") == str(out)
+            data = json.dumps(doc).encode()
+        elif path.name == "params.json":
             doc = json.loads(data)
             assert isinstance(doc.pop("seconds"), float)
             data = json.dumps(doc).encode()
@@ -263,14 +269,30 @@ def test_no_space_left_is_exit_3_and_keeps_finished_subjects(dataset, clean, tmp
     assert not list(out.rglob("*.tmp"))
 
 
-def test_errors_before_fitting_leave_no_run_folder(dataset, tmp_path):
+@pytest.fixture(scope="module")
+def fit_tool():
+    spec = importlib.util.spec_from_file_location("fit_tool", REPO / "tools" / "fit.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize(
+    ("extra", "code", "words"),
+    [
+        (("--data", "nothing"), 4, ("not found", "nothing")),
+        (("--set", "model.template=no_such_template"), 2, ("no_such_template",)),
+        (("--set", "solver.max_iter=many"), 2, ("solver.max_iter", "an integer", "'many'")),
+        (("--set", "fit.no_such_key=1"), 2, ("unknown key 'fit.no_such_key'",)),
+        (("--set", "fit.batch_size=[1]"), 2, ("fit.batch_size", "an integer")),
+    ],
+)
+def test_errors_before_fitting_leave_no_run_folder(
+    fit_tool, dataset, tmp_path, capsys, extra, code, words
+):
     out = tmp_path / "run"
-    proc = fit(tmp_path / "nothing", out)
-    assert_one_line_error(proc, 4, "not found", str(tmp_path / "nothing"))
-    proc = fit(dataset, out, "--set", "model.template=no_such_template")
-    assert_one_line_error(proc, 2, "no_such_template")
-    proc = fit(dataset, out, "--set", "solver.max_iter=many")
-    assert_one_line_error(proc, 2, "solver.max_iter", "an integer")
-    proc = fit(dataset, out, "--set", "fit.no_such_key=1")
-    assert_one_line_error(proc, 2, "fit.no_such_key")
+    argv = ["--config", str(REPO / "configs" / "demo.yaml"), "--data", str(dataset)]
+    assert fit_tool.main([*argv, "--out", str(out), *FAST, *extra]) == code
+    errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
+    assert len(errors) == 1 and all(w in errors[0] for w in words), errors
     assert not out.exists()

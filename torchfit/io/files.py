@@ -34,6 +34,9 @@ __all__ = [
 #: Suffix of the temporary files of :func:`write_atomic` (their names start with a dot).
 TEMPORARY_SUFFIX = ".tmp"
 
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+
 
 def _reason(exc: OSError) -> str:
     return exc.strerror or str(exc)
@@ -74,7 +77,7 @@ def write_atomic(path: str | Path, data: bytes | str) -> Path:
             fh.write(payload)
             fh.flush()
             os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; outputs are ordinary files
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give what open() would
         os.replace(tmp, path)
     except OSError as exc:
         if tmp is not None:
