@@ -267,3 +267,44 @@ def test_a_tensorboard_file_that_cannot_be_written_is_one_warning(tmp_path):
     warnings = [line for line in proc.stderr.splitlines() if "TensorBoard" in line]
     assert len(warnings) == 1 and "File too large" in warnings[0], proc.stderr
     assert str(tmp_path / "tb") in warnings[0]
+
+
+def test_resume_keeps_only_subjects_with_the_same_fingerprint(tmp_path, caplog):
+    import json
+
+    from torchfit.body.template import load_template
+    from torchfit.io.dataset import load_dataset
+    from torchfit.pipeline.fingerprint import Fingerprint, config_digest, template_digest
+    from torchfit.pipeline.run import _kept
+
+    config = load_config(REPO / "configs" / "demo.yaml")
+    subjects = load_dataset(config.data.root)
+    run_fp = Fingerprint(config_digest(config), template_digest(load_template("mpeg4_full")))
+    run_dir = tmp_path / "run"
+    for subject in subjects:  # a finished subject's files, as fit_batch writes them
+        folder = run_dir / subject.name
+        folder.mkdir(parents=True)
+        stages = [{"stage": "all", "status": "FTOL", "message": "m", "cost": 2.5, "iterations": 7}]
+        params = {"status": "ok", "message": "m", "stages": stages, "seconds": 1.25}
+        (folder / "params.json").write_text(json.dumps(params))
+        (folder / "measurements.json").write_text(json.dumps({"height_m": 1.7, "status": "ok"}))
+        fingerprint = run_fp.for_subject(subject).to_dict()
+        (folder / "fingerprint.json").write_text(json.dumps(fingerprint))
+    kept, fingerprints = _kept(subjects, run_fp, run_dir, resume=True)
+    assert sorted(kept) == sorted(fingerprints) == ["subject_000", "subject_001"]
+    row = kept["subject_000"].row()
+    assert (row["final_cost"], row["iterations"], row["seconds"], row["message"]) == (
+        2.5,
+        7,
+        1.25,
+        "m",
+    )
+    assert _kept(subjects, run_fp, run_dir, resume=False)[0] == {}
+    changed = Fingerprint(
+        config_digest(replace_keys(config, {"solver.ftol": 1e-3})), run_fp.template
+    )
+    with caplog.at_level("INFO"):
+        assert _kept(subjects, changed, run_dir, resume=True)[0] == {}
+    assert "subject_000: refitting (config changed)" in caplog.text
+    (run_dir / "subject_001" / "params.json").write_text("{")  # damaged by hand
+    assert sorted(_kept(subjects, run_fp, run_dir, resume=True)[0]) == ["subject_000"]
