@@ -126,6 +126,8 @@ def fit_batch(
     for i, prep in enumerate(prepared):
         name = prep.subject.name
         folder = run_dir / name
+        if not run_dir.is_dir():  # e.g. a vanished mount: do not write beside it
+            raise OutputError(f"cannot write {folder}: the run folder {run_dir} is gone")
         clear_outputs(folder)  # fingerprint.json first: the folder is not finished until the end
         make_dirs(folder)
         quality = {
