@@ -13,7 +13,7 @@ from torchfit.solver.options import LMOptions
 from torchfit.solver.result import LMStatus
 from torchfit.solver.steps import frozen_variables, geodesic_acceleration
 
-__all__ = ["lm_iteration", "project"]
+__all__ = ["update_jacobian", "lm_step", "project"]
 
 _BAD_NONFINITE = 1
 _BAD_LINALG = 2
@@ -28,21 +28,19 @@ def project(v: torch.Tensor, lo: torch.Tensor | None, hi: torch.Tensor | None) -
     return v
 
 
-def lm_iteration(s: dict, fn: ResidualFn, jacobian_for: Callable, opts: LMOptions):
-    """One iteration of every problem in the state ``s`` (all running); updates ``s``.
+def update_jacobian(s: dict, jacobian_for: Callable, opts: LMOptions) -> None:
+    """Step 1 for the problems in the state ``s`` (all running) that need it; updates ``s``.
 
-    Returns:
-        ``(step_norm, accepted)`` ``(N,)`` each, or None when every problem stopped at the
-        gtol test (or a non-finite Jacobian) before a step.
+    ``jacobian_for(rows)`` gives the Jacobian routine ``(x, r, mask) -> J`` of the rows
+    ``rows`` (positions in ``s``): the Jacobian is evaluated where a step was accepted (and
+    at the start) only.
     """
     x, r, mask, cost, status = s["x"], s["r"], s.get("mask"), s["cost"], s["status"]
     lo, hi, fixed = s.get("lo"), s.get("hi"), s["fixed"]
     has_bounds = lo is not None or hi is not None
-    dtype, device = x.dtype, x.device
-    eps = torch.finfo(dtype).eps
-    zero = torch.zeros((), dtype=dtype, device=device)
+    zero = torch.zeros((), dtype=x.dtype, device=x.device)
     valid = valid_entries(mask, x.shape[0])
-    mu, nu, diag2 = s["mu"], s["nu"], s["diag2"]
+    diag2 = s["diag2"]
 
     # 1. Jacobian, normal equations, scaling and the gtol test after accepted steps; the
     # Jacobian is evaluated for those problems only.
@@ -92,8 +90,22 @@ def lm_iteration(s: dict, fn: ResidualFn, jacobian_for: Callable, opts: LMOption
             0, rows, torch.where(gnorm_u <= opts.gtol, int(LMStatus.GTOL), status[rows])
         )
         s.update(r=r, cost=cost, status=status, diag2=diag2)
-        if not bool((status == LMStatus.RUNNING).any()):
-            return None
+
+
+def lm_step(s: dict, fn: ResidualFn, opts: LMOptions) -> tuple[torch.Tensor, torch.Tensor]:
+    """Steps 2-5 for every problem in the state ``s`` (all running); updates ``s``.
+
+    Returns:
+        ``(step_norm, accepted)``, ``(N,)`` each.
+    """
+    x, r, mask, cost, status = s["x"], s["r"], s.get("mask"), s["cost"], s["status"]
+    lo, hi, fixed = s.get("lo"), s.get("hi"), s["fixed"]
+    has_bounds = lo is not None or hi is not None
+    dtype, device = x.dtype, x.device
+    eps = torch.finfo(dtype).eps
+    zero = torch.zeros((), dtype=dtype, device=device)
+    valid = valid_entries(mask, x.shape[0])
+    mu, nu, diag2 = s["mu"], s["nu"], s["diag2"]
     running = status == LMStatus.RUNNING
     a_mat, grad, gnorm = s["a_mat"], s["grad"], s["gnorm"]
 

@@ -76,7 +76,7 @@ from collections.abc import Callable
 
 import torch
 
-from torchfit.solver.iteration import lm_iteration, project
+from torchfit.solver.iteration import lm_step, project, update_jacobian
 from torchfit.solver.jacobians import (
     JacobianFn,
     ResidualFn,
@@ -217,17 +217,12 @@ def levenberg_marquardt(
         iteration = 0
 
         while True:
-            running = state["status"] == LMStatus.RUNNING
-            if not bool(running.any()):
+            if not bool((state["status"] == LMStatus.RUNNING).any()):
                 break
             iteration += 1
-            # The active set: the running problems' rows, stepped together, scattered back.
-            idx = running.nonzero()[:, 0]
-            whole = idx.numel() == bsz
-            sub = state if whole else {k: v[idx] for k, v in state.items()}
             x_all = state["x"]
 
-            def jacobian_for(rows: torch.Tensor, idx=idx, x_all=x_all, sub=sub):
+            def jacobian_for(rows: torch.Tensor, idx: torch.Tensor, sub: dict, x_all=x_all):
                 """The Jacobian routine of the active rows ``rows`` (positions in ``idx``)."""
                 problems = idx[rows]
                 fn = rows_caller(residual_fn, indexed, problems, x_all)
@@ -237,12 +232,20 @@ def levenberg_marquardt(
                 hi_rows = sub["hi"][rows] if "hi" in sub else None
                 return make_jacobian(jac, fn, p, m, hi_rows, opts.fold_batch)
 
-            fn = rows_caller(residual_fn, indexed, idx, x_all)
-            out = lm_iteration(sub, fn, jacobian_for, opts)
-            if not whole:
-                for key, value in sub.items():
-                    state[key] = state[key].index_copy(0, idx, value)
-            if out is None or callback is None:
+            _on_running(
+                state,
+                lambda sub, idx: update_jacobian(
+                    sub, lambda rows: jacobian_for(rows, idx, sub), opts
+                ),
+            )
+            # compacted again: a problem that stopped at the gradient test takes no step
+            idx, out = _on_running(
+                state,
+                lambda sub, idx, x_all=x_all: lm_step(
+                    sub, rows_caller(residual_fn, indexed, idx, x_all), opts
+                ),
+            )
+            if idx is None or callback is None:
                 continue
             step_norm, accepted = zeros.clone(), torch.zeros(bsz, dtype=torch.bool, device=device)
             step_norm[idx], accepted[idx] = out
@@ -271,3 +274,19 @@ def levenberg_marquardt(
         njev=s["njev"],
         damping=s["mu"],
     )
+
+
+def _on_running(state: dict, work: Callable[[dict, torch.Tensor], object]):
+    """Run ``work(sub, idx)`` on the running problems' rows ``sub`` (``idx`` their indices)
+    and scatter the rows back: the active set is compacted. Returns ``(idx, result)``, or
+    ``(None, None)`` when no problem is running."""
+    idx = (state["status"] == LMStatus.RUNNING).nonzero()[:, 0]
+    if idx.numel() == 0:
+        return None, None
+    whole = idx.numel() == state["x"].shape[0]
+    sub = state if whole else {k: v[idx] for k, v in state.items()}
+    out = work(sub, idx)
+    if not whole:
+        for key, value in sub.items():
+            state[key] = state[key].index_copy(0, idx, value)
+    return idx, out
