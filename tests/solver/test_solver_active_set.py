@@ -97,3 +97,40 @@ def test_an_indexed_user_jacobian_gets_the_rows_it_is_asked_for():
     assert seen[0] == [0, 1, 2, 3, 4]
     assert all(0 not in rows for rows in seen[1:])  # problem 0 finished at once
     assert bool((res.status > 0).all())
+
+
+def _tanh_problem(n: int, p: int = 24):
+    """A(n, p), y(n), x0(p) of ``r(x) = tanh(A x) - y``, the same for the same ``n``."""
+    g = torch.Generator().manual_seed(n)
+    a = torch.randn(n, p, generator=g, dtype=torch.float64) / p**0.5
+    y = 0.5 * torch.tanh(torch.randn(n, generator=g, dtype=torch.float64))
+    return a, y, torch.randn(p, generator=g, dtype=torch.float64)
+
+
+def _padded(sizes: list[int], width: int):
+    """A plain residual function of the problems ``sizes`` padded (and masked) to ``width``,
+    and their starts ``(B, P)``; large enough that batched products round by batch size."""
+    problems = [_tanh_problem(n) for n in sizes]
+
+    def residual(x: torch.Tensor):
+        out = x.new_zeros(x.shape[0], width)
+        mask = torch.zeros(x.shape[0], width, dtype=torch.bool)
+        for b, (a, y, _) in enumerate(problems):
+            rows = torch.arange(b, x.shape[0], len(sizes))  # folded copies of problem b
+            out[rows, : len(y)] = torch.tanh(x[rows] @ a.T) - y
+            mask[rows, : len(y)] = True
+        return out, mask
+
+    return residual, torch.stack([x0 for _, _, x0 in problems])
+
+
+def test_padding_and_batch_size_do_not_change_the_rounding():
+    sizes = [1630, 1100, 700]
+    opts = LMOptions(max_iter=4)
+    fn, x0 = _padded(sizes, 1700)
+    batch = levenberg_marquardt(fn, x0, opts, jacobian="forward")
+    for b, n in enumerate(sizes):
+        fn_b, x0_b = _padded([n], n)
+        alone = levenberg_marquardt(fn_b, x0_b, opts, jacobian="forward")
+        torch.testing.assert_close(batch.x[b : b + 1], alone.x, rtol=0, atol=0)
+        torch.testing.assert_close(batch.cost[b : b + 1], alone.cost, rtol=0, atol=0)
