@@ -124,6 +124,37 @@ class ContourSelection:
         masks = [m for m in self.masks for _ in range(repeats)]
         return ContourSelection(rep(self.samples), rep(self.sample_valid), rep(self.nearest), masks)
 
+    def take(self, rows: torch.Tensor) -> ContourSelection:
+        """The choice of the images ``rows`` (N,), in that order (padding kept)."""
+        at = rows.to(self.samples.device)
+        masks = [self.masks[i] for i in rows.tolist()]
+        return ContourSelection(self.samples[at], self.sample_valid[at], self.nearest[at], masks)
+
+    def put(self, rows: torch.Tensor, other: ContourSelection) -> ContourSelection:
+        """This choice with the images ``rows`` (N,) replaced by ``other``'s N images.
+
+        The sample padding is widened to the wider of the two; what a residual makes of a
+        choice does not depend on its padding.
+        """
+        width = max(self.samples.shape[1], other.samples.shape[1])
+        at = rows.to(self.samples.device)
+        masks = list(self.masks)
+        for i, mask in zip(rows.tolist(), other.masks, strict=True):
+            masks[i] = mask
+        return ContourSelection(
+            _widen(self.samples, width).index_copy(0, at, _widen(other.samples, width)),
+            _widen(self.sample_valid, width).index_copy(0, at, _widen(other.sample_valid, width)),
+            self.nearest.index_copy(0, at, other.nearest),
+            masks,
+        )
+
+
+def _widen(t: torch.Tensor, width: int) -> torch.Tensor:
+    """(B, n) padded with zeros (False) on the right to (B, width)."""
+    if t.shape[1] == width:
+        return t
+    return torch.cat([t, t.new_zeros(t.shape[0], width - t.shape[1])], 1)
+
 
 @torch.no_grad()
 def select_contour(

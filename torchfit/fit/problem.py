@@ -32,7 +32,7 @@ from torchfit.fit.model_contour import (
 )
 from torchfit.fit.person import PersonData
 from torchfit.fit.pose import Poser, free_joints_for, nominal_angles
-from torchfit.fit.residuals import barrier, model_to_person, person_to_model
+from torchfit.fit.residuals import barrier, model_to_person, padded_row_sum, person_to_model
 from torchfit.image.distance import sample_distance_map
 
 __all__ = ["FitOptions", "SilhouetteFit"]
@@ -185,17 +185,25 @@ class SilhouetteFit:
         return self.project(self.pose_world(full, j, rows, vertex_index)[0], rows)
 
     @torch.no_grad()
-    def select(self, full: torch.Tensor) -> dict[int, ContourSelection]:
-        """The discrete model-contour choice at ``full`` (B, P), one per pose."""
-        rows = torch.arange(self.batch, device=full.device)
+    def select(
+        self, full: torch.Tensor, rows: torch.Tensor | None = None
+    ) -> dict[int, ContourSelection]:
+        """The discrete model-contour choice at ``full`` (N, P), one per pose.
+
+        Args:
+            full: (N, P) parameters.
+            rows: (N,) subject of each row (default: row i is subject i).
+        """
+        if rows is None:
+            rows = torch.arange(full.shape[0], device=full.device)
         out = {}
         for k, j in enumerate(self.poses):
             pixels = self.pose_pixels(full, j, rows)
             out[j] = select_contour(
                 self.sampler,
                 pixels,
-                self.person.contours[k],
-                self.person.valid[k],
+                self.person.contours[k][rows],
+                self.person.valid[k][rows],
                 self.camera.image_size,
                 self.options.contour_tolerance_px,
             )
@@ -293,20 +301,37 @@ class SilhouetteFit:
         return barrier(full, self.lower, self.upper, self.options.barrier_weight)
 
     def residual(
-        self, full: torch.Tensor, selections: dict[int, ContourSelection] | None = None
+        self,
+        full: torch.Tensor,
+        selections: dict[int, ContourSelection] | None = None,
+        rows: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """(B, M) residuals at ``full`` (B, P); the contour choice is made here if not given."""
-        selections = selections or self.select(full)
-        rows = torch.arange(full.shape[0], device=full.device)
+        """(N, M) residuals at ``full`` (N, P); the contour choice is made here if not given.
+
+        Args:
+            full: (N, P) parameters.
+            selections: the contour choice of each row (as :meth:`select` makes it).
+            rows: (N,) subject of each row (default: row i is subject i).
+        """
+        if rows is None:
+            rows = torch.arange(full.shape[0], device=full.device)
+        selections = selections or self.select(full, rows)
         parts = [self.pose_residual(full, j, rows, selections[j]) for j in self.poses]
         parts.append(self.barrier_residual(full))
         return torch.cat(parts, 1)
 
     # ------------------------------------------------------------------------------------
     def jacobian(
-        self, full: torch.Tensor, free: torch.Tensor, selections: dict[int, ContourSelection]
+        self,
+        full: torch.Tensor,
+        free: torch.Tensor,
+        selections: dict[int, ContourSelection],
+        rows: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """(B, M, F) Jacobian of :meth:`residual` w.r.t. the ``free`` (F,) parameters.
+        """(N, M, F) Jacobian of :meth:`residual` w.r.t. the ``free`` (F,) parameters.
+
+        ``full`` (N, P) are parameter rows of the subjects ``rows`` (N,) (default: row i is
+        subject i), ``selections`` their contour choice.
 
         Per pose, two autograd passes meet at the projected contour vertices:
 
@@ -322,7 +347,9 @@ class SilhouetteFit:
         f = free.numel()
         rl = self.residual_layout
         jac = torch.zeros(b, rl.size, f, **self.kw)
-        rows = torch.arange(b, device=full.device)
+        at = torch.arange(b, device=full.device)
+        if rows is None:
+            rows = at
         scale_cols = (free < self.layout.num_scale_params).nonzero().flatten()
         for k, j in enumerate(self.poses):
             sel = selections[j]
@@ -357,7 +384,7 @@ class SilhouetteFit:
                 dual = fwad.make_dual(full.repeat_interleave(c, dim=0), tangent)
                 tan = fwad.unpack_dual(self.pose_pixels(dual, j, rows_rep, vidx)).tangent
             tan = tan.reshape(b, c, -1, 2).permute(0, 2, 1, 3)  # (B, K, c, 2)
-            r = rows[:, None]
+            r = at[:, None]
             t_of = {
                 n: tan[r, lookup[getattr(ends, attr)]]
                 for n, attr in (
@@ -367,12 +394,12 @@ class SilhouetteFit:
                     ("mb", "model_b"),
                 )
             }
-            block_p = torch.einsum("bid,bicd->bic", local["pa"], t_of["pa"]) + torch.einsum(
-                "bid,bicd->bic", local["pb"], t_of["pb"]
-            )
-            block_m = torch.einsum("bnd,bncd->bc", local["ma"], t_of["ma"]) + torch.einsum(
-                "bnd,bncd->bc", local["mb"], t_of["mb"]
-            )
+            # Products and sums written out, not einsum: a batched matrix product rounds a
+            # subject's row differently by batch size, and the sum over the model contour
+            # must not see its padding to the batch's longest (padded_row_sum).
+            block_p = _dot2(local["pa"], t_of["pa"]) + _dot2(local["pb"], t_of["pb"])
+            per_point = _dot2(local["ma"], t_of["ma"]) + _dot2(local["mb"], t_of["mb"])
+            block_m = padded_row_sum(per_point.transpose(1, 2))
             jac[:, rl.e_p(j), cols] = block_p
             jac[:, rl.e_m(j), cols] = block_m
         # barrier: elementwise, derivative weight * (-1 below, +1 above, 0 inside)
@@ -381,3 +408,9 @@ class SilhouetteFit:
         slope = self.options.barrier_weight * ((x > hi).to(x) - (x < lo).to(x))
         jac[:, rl.barrier.start + free, torch.arange(f)] = slope
         return jac
+
+
+def _dot2(local: torch.Tensor, tangent: torch.Tensor) -> torch.Tensor:
+    """(B, n, 2) pixel derivatives times (B, n, c, 2) pixel tangents -> (B, n, c)."""
+    prod = local[:, :, None, :] * tangent
+    return prod[..., 0] + prod[..., 1]

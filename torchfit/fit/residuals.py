@@ -16,11 +16,40 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["person_to_model", "model_to_person", "barrier"]
+__all__ = ["person_to_model", "model_to_person", "barrier", "padded_row_sum"]
 
 #: e_M for a pose whose model contour is entirely out of view: a large constant, so the cost
 #: stays finite and the solver rejects steps that move the model out of the image.
 NO_CONTOUR_PENALTY = 1e3
+
+#: Chunk length of :func:`padded_row_sum`.
+SUM_CHUNK = 64
+
+
+def padded_row_sum(values: torch.Tensor) -> torch.Tensor:
+    """Sum over the last dimension that trailing zero padding does not change, bit for bit.
+
+    A plain ``sum`` groups a row's terms by its length (vector lanes, tails), so the same
+    terms padded to a batch's longest row round differently from the row alone. Here the row
+    is cut into chunks of :data:`SUM_CHUNK` (the last one zero-filled), each chunk summed on
+    its own, and the chunk sums added one after another: extra zero chunks add exact zeros.
+
+    Args:
+        values: (..., n) terms, zero-padded on the right (dual tensors allowed).
+
+    Returns:
+        (...) sums.
+    """
+    n = values.shape[-1]
+    chunks = max(1, -(-n // SUM_CHUNK))
+    pad = chunks * SUM_CHUNK - n
+    if pad:
+        values = torch.cat([values, values.new_zeros(*values.shape[:-1], pad)], -1)
+    partial = values.reshape(*values.shape[:-1], chunks, SUM_CHUNK).sum(-1)
+    total = partial[..., 0]
+    for c in range(1, chunks):
+        total = total + partial[..., c]
+    return total
 
 
 def person_to_model(distances: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -47,7 +76,8 @@ def model_to_person(distances: torch.Tensor, valid: torch.Tensor) -> torch.Tenso
     d = distances
     d2 = torch.where(valid, d * d, torch.zeros_like(d))
     n = valid.sum(dim=1)
-    mean = d2.sum(dim=1) / n.clamp_min(1).to(d.dtype)
+    # padding of the model contour (to a batch's longest) must not change a subject's value
+    mean = padded_row_sum(d2) / n.clamp_min(1).to(d.dtype)
     # sqrt(mean) with a smooth floor so a perfect fit has a finite derivative
     e = torch.sqrt(mean + 1e-12)
     return torch.where(n > 0, e, torch.full_like(e, NO_CONTOUR_PENALTY))

@@ -14,6 +14,7 @@ from typing import Literal
 
 import torch
 
+from torchfit.fit.model_contour import ContourSelection
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.solver import LMOptions, LMResult, levenberg_marquardt
 from torchfit.solver.jacobians import make_jacobian
@@ -76,46 +77,37 @@ def solve_stage(
     free = fit.stage_indices(list(stage.scales), stage.joints, stage.root)
     base = full.detach().clone()
     mask = fit.residual_mask()
-    cache: dict = {}
+    chosen = _Selections(fit)
     onehot = torch.zeros(free.numel(), base.shape[1], **fit.kw)
     onehot[torch.arange(free.numel()), free] = 1.0
 
-    def expand(x: torch.Tensor) -> torch.Tensor:
-        reps = x.shape[0] // base.shape[0]
-        return base.repeat(reps, 1) * (1 - onehot.sum(0)) + x @ onehot
+    def expand(x: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        # exact: each column of x @ onehot holds one x entry (times 1) and zeros
+        return base[rows] * (1 - onehot.sum(0)) + x @ onehot
 
-    def residual_fn(x: torch.Tensor):
-        full_x = expand(x)
-        if "sel" not in cache:
-            cache["sel"] = fit.select(full_x)
-        reps = x.shape[0] // fit.batch
-        if reps == 1:
-            return fit.residual(full_x, cache["sel"]), mask
-        out = [
-            fit.residual(full_x[i * fit.batch : (i + 1) * fit.batch], cache["sel"])
-            for i in range(reps)
-        ]
-        return torch.cat(out), mask.repeat(reps, 1)
+    def residual_fn(x: torch.Tensor, rows: torch.Tensor):
+        full_x = expand(x, rows)
+        return fit.residual(full_x, chosen.take(rows, full_x), rows), mask[rows]
 
-    def own_jacobian(x: torch.Tensor):
-        full_x = expand(x)
-        cache["sel"] = fit.select(full_x)
-        jac = fit.jacobian(full_x, free, cache["sel"])
-        return jac, fit.residual(full_x, cache["sel"])
+    def own_jacobian(x: torch.Tensor, rows: torch.Tensor):
+        full_x = expand(x, rows)
+        sel = chosen.refresh(rows, full_x)
+        jac = fit.jacobian(full_x, free, sel, rows)
+        return jac, fit.residual(full_x, sel, rows)
 
-    generic = make_jacobian(
-        jacobian if jacobian != "autograd" else "forward",
-        residual_fn,
-        free.numel(),
-        mask.shape[1],
-        None,
-        options.fold_batch,
-    )
-
-    def generic_jacobian(x: torch.Tensor):
-        cache["sel"] = fit.select(expand(x))
-        r, _ = residual_fn(x)
-        return generic(x, r, mask), r
+    def generic_jacobian(x: torch.Tensor, rows: torch.Tensor):
+        chosen.refresh(rows, expand(x, rows))
+        r, _ = residual_fn(x, rows)
+        n = rows.numel()
+        generic = make_jacobian(
+            jacobian if jacobian != "autograd" else "forward",
+            lambda xx: residual_fn(xx, rows.repeat(xx.shape[0] // n)),
+            free.numel(),
+            mask.shape[1],
+            None,
+            options.fold_batch,
+        )
+        return generic(x, r, mask[rows]), r
 
     x0 = full[:, free].detach().clone()
     result = levenberg_marquardt(
@@ -124,7 +116,45 @@ def solve_stage(
         options=options,
         jacobian=own_jacobian if jacobian == "autograd" else generic_jacobian,
         callback=callback,
+        indexed=True,
     )
     out = full.detach().clone()
     out[:, free] = result.x
     return out, result
+
+
+class _Selections:
+    """The current contour choice of every subject of a stage.
+
+    The solver evaluates only its running subjects (rows ``rows`` of the batch); a subject's
+    choice is made at its first evaluation and remade where its Jacobian is (after each
+    accepted step), whatever the others are doing.
+    """
+
+    def __init__(self, fit: SilhouetteFit) -> None:
+        self.fit = fit
+        self.chosen: dict[int, ContourSelection] | None = None
+        self.have = torch.zeros(fit.batch, dtype=torch.bool)
+
+    def refresh(self, rows: torch.Tensor, full: torch.Tensor) -> dict[int, ContourSelection]:
+        """Remake the choice of the subjects ``rows`` (N,) at their parameters ``full`` (N, P);
+        returns it."""
+        new = self.fit.select(full, rows)
+        if self.chosen is None:
+            everyone = torch.arange(self.fit.batch)
+            # placeholders for the subjects not chosen yet (never read before they are)
+            self.chosen = {j: sel.take(torch.zeros_like(everyone)) for j, sel in new.items()}
+        self.chosen = {j: self.chosen[j].put(rows.cpu(), new[j]) for j in new}
+        self.have[rows.cpu()] = True
+        return new
+
+    def take(self, rows: torch.Tensor, full: torch.Tensor) -> dict[int, ContourSelection]:
+        """The choice of the rows' subjects (N,) (made at ``full`` (N, P) where there is none:
+        a folded evaluation repeats rows, and only the first copy is used then)."""
+        at = rows.cpu()
+        missing = ~self.have[at]
+        if bool(missing.any()):
+            subjects = torch.unique(at[missing])
+            first = torch.stack([(at == i).nonzero()[0, 0] for i in subjects])
+            self.refresh(subjects.to(rows.device), full[first.to(full.device)])
+        return {j: sel.take(at) for j, sel in self.chosen.items()}

@@ -2,8 +2,10 @@
 
 The solver knows nothing of bodies, cameras or images: it takes a residual function
 ``(B, P) -> (B, M)`` (optionally with a validity mask), a start ``x0 (B, P)``, options and an
-optional callback, and returns per-problem results. ``minpack_baseline`` runs the same residual
-function through MINPACK's ``lmdif`` for comparison.
+optional callback, and returns per-problem results, each the same as that problem solved alone.
+Only running problems are stepped; with ``indexed=True`` the residual function is called as
+``fn(x, index)`` for their rows alone. ``minpack_baseline`` runs the same residual function
+through MINPACK's ``lmdif`` for comparison.
 
 Example:
     >>> from torchfit.solver import levenberg_marquardt, LMOptions

@@ -34,6 +34,7 @@ __all__ = [
     "jacobian_reverse",
     "jacobian_numeric",
     "make_jacobian",
+    "rows_caller",
 ]
 
 ResidualOut = torch.Tensor | tuple[torch.Tensor, torch.Tensor]
@@ -301,3 +302,29 @@ def make_jacobian(
         "jacobian: expected 'autograd', 'forward', 'reverse', 'numeric' or a callable, "
         f"got {jacobian!r}"
     )
+
+
+def rows_caller(fn: Callable, indexed: bool, problems: torch.Tensor, x_all: torch.Tensor):
+    """``fn`` as a function of the rows of ``problems`` (``(N,)`` problem indices).
+
+    An indexed ``fn`` gets ``(x, index)``, ``index`` the problem of each row (``K`` stacked
+    copies repeat ``problems``). A plain one gets the whole batch, ``x_all`` with the rows of
+    ``problems`` replaced by ``x`` (differentiably), and its rows of ``problems`` are kept.
+    """
+    n, bsz = problems.numel(), x_all.shape[0]
+    if indexed:
+        return lambda x: fn(x, problems.repeat(x.shape[0] // n))
+    if n == bsz and bool((problems == torch.arange(bsz, device=problems.device)).all()):
+        return fn
+
+    def call(x: torch.Tensor):
+        k = x.shape[0] // n
+        rows = (torch.arange(k, device=x.device)[:, None] * bsz + problems[None]).flatten()
+        source = torch.arange(k * bsz, device=x.device) + k * n  # rows of x_all.repeat(k, 1)
+        source[rows] = torch.arange(k * n, device=x.device)  # rows of x
+        out = fn(torch.cat([x, x_all.repeat(k, 1).to(x.dtype)])[source])
+        if isinstance(out, tuple):
+            return tuple(o[rows] if isinstance(o, torch.Tensor) else o for o in out)
+        return out[rows] if isinstance(out, torch.Tensor) else out
+
+    return call

@@ -1,0 +1,72 @@
+"""A subject's fit does not depend on the batch it is fitted in.
+
+Alone, first in one batch and second in another (each batch with its own padding of the
+person contours and model contour samples), the same subject must get the same parameters and
+measurements, bit for bit: the solver steps each problem on its own rows and forms every sum
+over a problem's residuals from its own entries, and the fit's residual and Jacobian sums do
+not see the padding.
+"""
+
+import pytest
+import torch
+from template_subjects import make_template_subject
+
+from torchfit.body.measure import measure_model
+from torchfit.camera import stack_cameras
+from torchfit.fit import (
+    FitOptions,
+    SilhouetteFit,
+    StageOptions,
+    person_data_from_masks,
+    solve_stage,
+)
+from torchfit.image import SegmentationOptions, fit_background, segment
+from torchfit.io.dataset import load_subject
+from torchfit.io.images import load_frames
+from torchfit.solver import LMOptions
+
+# two postures and a few iterations of both stages keep it quick
+POSES = (1, 3)
+STAGES = (
+    StageOptions(name="legs_upper_body", scales=("legs", "upper_body"), max_iter=2),
+    StageOptions(name="all", scales=("all",), max_iter=2),
+)
+
+
+@pytest.fixture(scope="module")
+def masks(tmp_path_factory, model):
+    """Silhouettes (J, H, W) of the fitted postures and camera of three template subjects of
+    different sizes."""
+    root = tmp_path_factory.mktemp("batch_subjects")
+    cfg = SegmentationOptions(gamma=0.05)
+    out = {}
+    for name, scale, seed in (("a", 0.96, 11), ("b", 1.05, 12), ("c", 0.9, 13)):
+        make_template_subject(root / name, model, scale=scale, seed=seed)
+        subject = load_subject(root / name)
+        background, _ = load_frames(subject.background)
+        images, _ = load_frames(subject.poses)
+        seg = segment(images, fit_background(background, cfg), cfg)
+        out[name] = (seg.masks[[j - 1 for j in POSES], 0], subject.camera)
+    return out
+
+
+def _fit(model, masks, names):
+    person = person_data_from_masks(
+        torch.stack([masks[n][0] for n in names]), stack_cameras([masks[n][1] for n in names])
+    )
+    fit = SilhouetteFit(model, person, FitOptions(poses=POSES))
+    x = fit.initial_params()
+    for stage in STAGES:
+        x, _ = solve_stage(fit, x, stage, LMOptions(max_iter=stage.max_iter, min_diag=1.0))
+    scales = model.expand_scales(fit.layout.group_scales(x))
+    return x, measure_model(model, scales)
+
+
+def test_a_subject_alone_equals_it_first_and_second_in_other_batches(model, masks):
+    alone_x, alone_m = _fit(model, masks, ["a"])
+    for names in (["a", "b"], ["c", "a"]):
+        x, measures = _fit(model, masks, names)
+        i = names.index("a")
+        torch.testing.assert_close(x[i : i + 1], alone_x, rtol=0, atol=0)
+        for key, value in alone_m.items():
+            assert abs(float(measures[key][i]) - float(value[0])) <= 1e-9, key

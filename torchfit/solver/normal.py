@@ -1,0 +1,111 @@
+"""Per-problem reductions of the Levenberg–Marquardt solver: the cost and the normal equations.
+
+Every sum over a problem's residual entries is formed here, from that problem's own valid
+entries copied into a fresh buffer, so it runs on the same numbers in the same shapes whether
+the problem is solved alone or in any position of any batch. Batched matrix products do not
+give that: a ``(B, P, M) @ (B, M, P)`` product rounds a row differently for different ``B``
+or row positions (MKL's batched kernels), and padding entries, although zero, change how the
+remaining ones are grouped in a sum. One product per problem costs a Python loop over the
+running problems, which is small beside a residual evaluation.
+
+A per-residual weighting (a robust loss) belongs in :func:`normal_equations` and
+:func:`half_squared_norm`: they are the only places where residuals and the Jacobian are
+reduced.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = [
+    "valid_entries",
+    "half_squared_norm",
+    "normal_equations",
+    "jacobian_times",
+    "jacobian_t_times",
+]
+
+
+def valid_entries(mask: torch.Tensor | None, batch: int) -> list[torch.Tensor | None]:
+    """Per problem, the ``(m_b,)`` indices of its valid residual entries (None: all of them).
+
+    Args:
+        mask: ``(B, M)`` bool, or None when every entry is valid.
+        batch: ``B``.
+    """
+    if mask is None:
+        return [None] * batch
+    return [row.nonzero()[:, 0] for row in mask]
+
+
+def _own(values: torch.Tensor, index: torch.Tensor | None, dim: int) -> torch.Tensor:
+    """A fresh contiguous copy of one problem's valid entries along ``dim``."""
+    if index is None:
+        return values.clone(memory_format=torch.contiguous_format)
+    return values.index_select(dim, index)
+
+
+def half_squared_norm(r: torch.Tensor, valid: list[torch.Tensor | None]) -> torch.Tensor:
+    """``(B,)`` cost ``0.5 * |r_b|²`` over each problem's valid entries.
+
+    Args:
+        r: ``(B, M)`` residuals.
+        valid: from :func:`valid_entries`.
+    """
+    out = torch.empty(r.shape[0], dtype=r.dtype, device=r.device)
+    for b in range(r.shape[0]):
+        own = _own(r[b], valid[b], 0)
+        out[b] = 0.5 * torch.dot(own, own)
+    return out
+
+
+def normal_equations(
+    jac: torch.Tensor, r: torch.Tensor, valid: list[torch.Tensor | None]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``A = JᵀJ`` ``(B, P, P)`` and ``g = Jᵀr`` ``(B, P)``, one product per problem.
+
+    Args:
+        jac: ``(B, M, P)`` Jacobian (the built-in ones are views of ``(B, P, M)`` storage,
+            whose per-problem copies are then plain row gathers).
+        r: ``(B, M)`` residuals.
+        valid: from :func:`valid_entries`.
+    """
+    b_size, _, p = jac.shape
+    a_mat = torch.empty(b_size, p, p, dtype=jac.dtype, device=jac.device)
+    grad = torch.empty(b_size, p, dtype=jac.dtype, device=jac.device)
+    jac_t = jac.transpose(1, 2)
+    for b in range(b_size):
+        index = valid[b]
+        jt = _own(jac_t[b], index, 1)  # (P, m_b)
+        a_mat[b] = jt @ jt.T
+        grad[b] = jt @ _own(r[b], index, 0)
+    return a_mat, grad
+
+
+def jacobian_times(
+    jac: torch.Tensor, v: torch.Tensor, valid: list[torch.Tensor | None]
+) -> torch.Tensor:
+    """``(B, M)`` products ``J_b v_b`` (zero on invalid entries), one per problem."""
+    out = torch.zeros(jac.shape[:2], dtype=jac.dtype, device=jac.device)
+    jac_t = jac.transpose(1, 2)
+    for b in range(jac.shape[0]):
+        index = valid[b]
+        jt = _own(jac_t[b], index, 1)
+        prod = jt.T @ v[b].clone()
+        if index is None:
+            out[b] = prod
+        else:
+            out[b, index] = prod
+    return out
+
+
+def jacobian_t_times(
+    jac: torch.Tensor, v: torch.Tensor, valid: list[torch.Tensor | None]
+) -> torch.Tensor:
+    """``(B, P)`` products ``J_bᵀ v_b`` over each problem's valid entries, one per problem."""
+    out = torch.empty(jac.shape[0], jac.shape[2], dtype=jac.dtype, device=jac.device)
+    jac_t = jac.transpose(1, 2)
+    for b in range(jac.shape[0]):
+        index = valid[b]
+        out[b] = _own(jac_t[b], index, 1) @ _own(v[b], index, 0)
+    return out
