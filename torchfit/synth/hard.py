@@ -79,7 +79,9 @@ class HardConditions:
             direction = np.array(
                 [math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)]
             )
-            light = Light(direction, ambient=rng.uniform(0.22, 0.35), diffuse=rng.uniform(0.65, 0.8))
+            light = Light(
+                direction, ambient=rng.uniform(0.22, 0.35), diffuse=rng.uniform(0.65, 0.8)
+            )
         if self.cfg.furniture:
             room.boxes = [b for b in room.boxes if not math.isclose(b.lo[0], -room.back)]
             room.boxes += _furniture(self._rng[_FURNITURE], room.back)
