@@ -13,8 +13,10 @@ subjects, whatever ``n``.
 for evaluation, never an input of the fit (the dataset loader does not read it):
 ``truth_masks/pose1.png`` … ``pose6.png`` hold the true person silhouette of each posture
 image (0/255, the renderer's own coverage: pixel centres covered by a visible body triangle,
-before the optics blur), ``truth_masks/pose1_shadow.png`` … the cast floor shadow outside
-the person (where the blurred shadow reaches at least half strength); ``stereo/truth_masks/``
+before the optics blur), ``truth_masks/pose1_shadow.png`` … the body's cast shadow outside
+the person (where the blurred shadow reaches at least half strength): on the floor in the
+standard rooms, on every surface it darkens (floor, walls, furniture) with ``wall_shadows``
+(:mod:`torchfit.synth.hard`); ``stereo/truth_masks/``
 holds ``left.png``, ``right.png``, ``left_shadow.png`` and ``right_shadow.png``.
 ``make_subject(..., masks_only=True)`` rewrites only these masks for an existing subject: it
 draws the same random numbers in the same order without rendering the empty room, writing
