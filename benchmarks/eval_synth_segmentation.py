@@ -1,7 +1,7 @@
 """Segmentation quality on synthetic subjects, against the renderer's true masks.
 
     python benchmarks/eval_synth_segmentation.py --data DIR [--config FILE] [--set k=v]
-        [--subjects subject_000 ...] [--stereo] [--overlays OUT] [--quiet]
+        [--subjects subject_000 ...] [--stereo] [--overlays OUT] [--csv FILE] [--quiet]
 
 ``DIR`` holds subject folders written by ``tools/make_subjects.py`` with their evaluation
 masks (``truth_masks/poseK.png`` and ``truth_masks/poseK_shadow.png``; add them to older
@@ -20,14 +20,19 @@ Per subject and posture image it prints:
   "predicted contour pixel to nearest true contour pixel" and the reverse, each from an exact
   Euclidean distance transform; ``cd_max`` the 95th percentile of both directions.
 
-Then the means over all images and per posture. ``--overlays OUT`` writes, per image, a PNG
-with true positives grey, false positives (the mask where the person is not) red, false
-negatives (person missed) blue, and the true shadow outlined in yellow.
+Then the means over all images and per posture, and the figures pooled over the pixels of
+all images (``pooled``: F from the summed counts, and the share of all cast-shadow pixels
+kept as background), the figures to compare between datasets (standard and hard rooms,
+``configs/synth_hard.yaml``). ``--csv FILE`` writes the per-image rows. ``--overlays OUT``
+writes, per image, a PNG with true positives grey, false positives (the mask where the
+person is not) red, false negatives (person missed) blue, and the true shadow outlined in
+yellow.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import platform
 import sys
 import time
@@ -107,6 +112,11 @@ def evaluate_subject(folder: Path, cfg, stereo: bool, overlays: Path | None) -> 
                     "shadow_bg": sh_bg,
                     "cd": cd,
                     "cd95": cd95,
+                    "tp": tp,
+                    "fp": fp,
+                    "fn": fn,
+                    "shadow": n_sh,
+                    "shadow_kept": int((~pred & shadow).sum()),
                 }
             )
             if overlays is not None:
@@ -136,6 +146,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--subjects", nargs="*", default=None)
     parser.add_argument("--stereo", action="store_true", help="also score the stereo pair")
     parser.add_argument("--overlays", default=None, help="write overlay PNGs to this folder")
+    parser.add_argument("--csv", default=None, help="write the per-image rows to this CSV")
     parser.add_argument("--quiet", action="store_true", help="print only the means")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -177,6 +188,19 @@ def main(argv: list[str] | None = None) -> None:
             f"{_fmt(_mean(group, 'F'))}     {_fmt(_mean(group, 'shadow_bg'))} "
             f"{_fmt(_mean(group, 'cd'))} {_fmt(_mean(group, 'cd95'))}"
         )
+    tp, fp, fn = (sum(r[k] for r in rows) for k in ("tp", "fp", "fn"))
+    p, r = tp / max(tp + fp, 1), tp / max(tp + fn, 1)
+    n_sh = sum(r["shadow"] for r in rows)
+    kept = sum(r["shadow_kept"] for r in rows) / n_sh if n_sh else float("nan")
+    print(
+        f"{'pooled':26s} {_fmt(p)} {_fmt(r)} {_fmt(2 * p * r / max(p + r, 1e-12))}     "
+        f"{_fmt(kept)}   (cast-shadow pixels: {n_sh})"
+    )
+    if args.csv:
+        with open(args.csv, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
     worst = sorted(rows, key=lambda r: -r["cd"])[:5]
     print("worst cd:", ", ".join(f"{r['subject']}/{r['image']} {r['cd']:.1f}" for r in worst))
 

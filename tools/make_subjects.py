@@ -6,6 +6,18 @@
 ``--masks-only`` (re)writes only the evaluation masks (``truth_masks/``) of subjects generated
 earlier with the same seed and config, without writing their images again.
 
+Hard rooms: ``--config configs/synth_hard.yaml`` turns on every condition of
+:mod:`torchfit.synth.hard` (the body's shadow on the walls and furniture beside the arms and
+head, a bookshelf, cabinet and door, patterned walls and posters, exposure and white-balance
+changes between the background frames and each posture with a slow drift, stronger sensor
+noise and a JPEG round trip, a wider range of camera heights and distances); each is its own
+key, so ``--set`` switches one on or off (e.g. ``--set wall_shadows=true`` alone). With none
+of them (the default) the subjects are bit-identical to those made before these keys existed.
+``truth_masks/poseK_shadow.png`` then holds the cast shadow on every surface, not only the floor.
+
+    python tools/make_subjects.py --config configs/synth_hard.yaml --out data_hard_dev --n 8 \
+        --seed 3000 --contact-sheet data_hard_dev/contact_sheet.png
+
 Needs the ``synth`` extra (``pip install -e ".[synth]"``). The same seed gives the same
 subjects; subject ``i`` does not depend on ``--n``.
 """

@@ -19,8 +19,10 @@ Writes ``OUT/<stem>.png`` (0 background, 255 person) for every image where a per
 and ``OUT/status.csv`` (file, status, message). With ``--truth DIR`` it prints precision, recall
 and F-measure against CDnet-style label images (``gtNNNNNN.png`` for ``inNNNNNN.*``, otherwise
 the same stem); an image where no person was found counts there as an empty mask, an unreadable
-or wrongly sized image is not scored. Exit code: 0 if every image was segmented, 1 if any
-failed, 2 for a setup error.
+or wrongly sized image is not scored. It also prints the fraction of the true cast-shadow
+pixels kept as background: those labelled 50 (CDnet) and, for a synthetic subject's
+``--truth SUBJECT/truth_masks``, those of ``<stem>_shadow.png`` beside each label image.
+Exit code: 0 if every image was segmented, 1 if any failed, 2 for a setup error.
 """
 
 from __future__ import annotations
@@ -134,6 +136,13 @@ def main(argv: list[str] | None = None) -> int:
                         missing_truth += 1
                     else:
                         scored += 1
+                        shadow = gt.with_name(f"{gt.stem}_shadow.png")
+                        if shadow.is_file():  # make_subjects.py's truth_masks/poseK_shadow.png
+                            cast = read_mask(shadow) > 127
+                            counts["shadow"] += int(cast.sum())
+                            counts["shadow_as_background"] += int(
+                                (cast & ~mask.cpu().numpy().astype(bool)).sum()
+                            )
                         for k, v in counts.items():
                             totals[k] = totals.get(k, 0) + v
             bar.update(1)
@@ -158,9 +167,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             if totals.get("shadow"):
                 frac = totals["shadow_as_background"] / totals["shadow"]
-                print(
-                    f"shadow pixels (label 50) kept as background: {frac:.4f} of {totals['shadow']}"
-                )
+                print(f"cast-shadow pixels kept as background: {frac:.4f} of {totals['shadow']}")
         else:
             print(f"no ground truth found in {args.truth} for these images")
     return 1 if failed else 0

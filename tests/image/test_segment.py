@@ -167,7 +167,7 @@ def test_cli_statuses_scores_and_exit_code(tmp_path: Path) -> None:
     assert "in000005.png" in out and "cannot read image" in out
     assert "3 of 6 images segmented, 3 failed" in out
     assert "F-measure 1.0000" in out
-    assert "shadow pixels (label 50) kept as background: 1.0000" in out
+    assert "cast-shadow pixels kept as background: 1.0000 of 270" in out
     for i in range(3):
         mask = cv2.imread(str(tmp_path / "out" / f"in00000{i}.png"), cv2.IMREAD_UNCHANGED)
         assert set(np.unique(mask).tolist()) == {0, 255}
@@ -178,3 +178,38 @@ def test_cli_statuses_scores_and_exit_code(tmp_path: Path) -> None:
         cmd[:5] + [str(tmp_path / "nowhere")] + cmd[6:], capture_output=True, text=True, timeout=120
     )
     assert bad.returncode == 2 and "nowhere" in bad.stderr
+
+
+def test_cli_scores_synthetic_truth_masks_with_their_shadow(tmp_path: Path) -> None:
+    # make_subjects.py layout: truth_masks/poseK.png (0/255) and poseK_shadow.png beside it
+    rng = np.random.default_rng(6)
+    scene = rng.integers(60, 120, (40, 50, 3)).astype(np.float64)
+    for i in range(6):
+        noisy = np.clip(scene + rng.normal(0, 1.5, scene.shape), 0, 255).round().astype(np.uint8)
+        write_png(tmp_path / "background" / f"bg{i}.png", noisy)
+    person = np.zeros((40, 50), np.uint8)
+    person[8:34, 15:30] = 255
+    shadow = np.zeros((40, 50), np.uint8)
+    shadow[34:37, 15:45] = 255  # 90 cast-shadow pixels
+    img = np.clip(scene + rng.normal(0, 1.5, scene.shape), 0, 255)
+    img[8:37, 15:30] = (230, 40, 40)  # half of the shadow is taken for the person
+    write_png(tmp_path / "poses" / "pose1.png", img.round().astype(np.uint8))
+    write_png(tmp_path / "truth_masks" / "pose1.png", person)
+    write_png(tmp_path / "truth_masks" / "pose1_shadow.png", shadow)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "tools" / "segment.py"),
+            *("--background", str(tmp_path / "background")),
+            *("--images", str(tmp_path / "poses")),
+            *("--out", str(tmp_path / "out")),
+            *("--config", str(TEST_DATA / "seg_config.yaml")),
+            *("--truth", str(tmp_path / "truth_masks")),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "scored 1 images" in proc.stdout
+    assert "cast-shadow pixels kept as background: 0.5000 of 90" in proc.stdout

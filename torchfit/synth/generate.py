@@ -13,8 +13,10 @@ subjects, whatever ``n``.
 for evaluation, never an input of the fit (the dataset loader does not read it):
 ``truth_masks/pose1.png`` … ``pose6.png`` hold the true person silhouette of each posture
 image (0/255, the renderer's own coverage: pixel centres covered by a visible body triangle,
-before the optics blur), ``truth_masks/pose1_shadow.png`` … the cast floor shadow outside
-the person (where the blurred shadow reaches at least half strength); ``stereo/truth_masks/``
+before the optics blur), ``truth_masks/pose1_shadow.png`` … the body's cast shadow outside
+the person (where the blurred shadow reaches at least half strength): on the floor in the
+standard rooms, on every surface it darkens (floor, walls, furniture) with ``wall_shadows``
+(:mod:`torchfit.synth.hard`); ``stereo/truth_masks/``
 holds ``left.png``, ``right.png``, ``left_shadow.png`` and ``right_shadow.png``.
 ``make_subject(..., masks_only=True)`` rewrites only these masks for an existing subject: it
 draws the same random numbers in the same order without rendering the empty room, writing
@@ -37,10 +39,12 @@ import torch
 from torchfit.camera import look_at
 from torchfit.io.camera import save_camera, save_stereo_cameras
 from torchfit.measurements import JOINT_NAMES, measurements_from_joints
-from torchfit.synth.body import AnnyBody, Phenotype, PosedBody, load_anny
+from torchfit.synth.body import AnnyBody, PosedBody, load_anny
+from torchfit.synth.hard import HardConditions
 from torchfit.synth.options import SynthConfig
 from torchfit.synth.postures import POSTURES, STEREO_POSTURE, Posture, axis_angle, perturb
 from torchfit.synth.scene import Light, Room, finish, render, sample_camera, sample_room
+from torchfit.synth.subject import body_with_height, sample_albedo, sample_phenotype
 
 __all__ = ["SynthConfig", "make_subject", "make_subjects", "sample_phenotype"]
 
@@ -49,104 +53,6 @@ log = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------------------------
 # Subjects
-
-_SKIN = np.array(
-    [
-        [0.93, 0.76, 0.65],
-        [0.87, 0.66, 0.52],
-        [0.76, 0.55, 0.40],
-        [0.60, 0.41, 0.29],
-        [0.45, 0.30, 0.21],
-        [0.33, 0.22, 0.16],
-    ]
-)
-_CLOTHES = np.array(
-    [
-        [0.10, 0.15, 0.35],
-        [0.15, 0.30, 0.60],
-        [0.12, 0.40, 0.20],
-        [0.55, 0.10, 0.12],
-        [0.20, 0.20, 0.22],
-        [0.45, 0.45, 0.48],
-        [0.05, 0.05, 0.06],
-        [0.30, 0.15, 0.40],
-        [0.10, 0.45, 0.50],
-        [0.85, 0.85, 0.88],
-        [0.70, 0.60, 0.10],
-    ]
-)
-_HAIR = np.array([[0.05, 0.04, 0.03], [0.22, 0.13, 0.07], [0.55, 0.42, 0.22], [0.6, 0.6, 0.6]])
-
-
-def sample_phenotype(rng: np.random.Generator) -> tuple[Phenotype, str]:
-    """A random adult phenotype (its ``height`` still 0.5) and its sex."""
-    sex = "female" if rng.random() < 0.5 else "male"
-    gender = rng.uniform(0.85, 1.0) if sex == "female" else rng.uniform(0.0, 0.15)
-    phen = Phenotype(
-        gender=gender,
-        age=rng.uniform(0.6, 0.95),
-        muscle=rng.uniform(0.1, 0.9),
-        weight=rng.uniform(0.05, 0.95),
-        height=0.5,
-        proportions=rng.uniform(0.3, 0.7),
-    )
-    return phen, sex
-
-
-def _neutral_height(body: AnnyBody) -> float:
-    v = body.pose({}).vertices
-    return float(v[:, 2].max() - v[:, 2].min())
-
-
-def _body_with_height(phen: Phenotype, target: float, model: Any) -> AnnyBody:
-    """Bisection on anny's height parameter for a neutral standing height of ``target``."""
-    lo, hi = 0.0, 1.0
-    body = None
-    for _ in range(12):
-        phen.height = 0.5 * (lo + hi)
-        body = AnnyBody(phen, model)
-        h = _neutral_height(body)
-        if abs(h - target) < 2e-3:
-            break
-        lo, hi = (phen.height, hi) if h < target else (lo, phen.height)
-    return body
-
-
-def _albedo(body: AnnyBody, rng: np.random.Generator) -> np.ndarray:
-    """(V, 3) albedo: skin for hands, face and neck; shirt, trousers, shoes, hair."""
-    bones = body.dominant_bones()
-    skin = _SKIN[rng.integers(len(_SKIN))] * rng.uniform(0.95, 1.05)
-    picks = rng.choice(len(_CLOTHES), size=2, replace=False)
-    shirt, trousers = _CLOTHES[picks[0]], _CLOTHES[picks[1]]
-    shoes = rng.choice(np.array([[0.05, 0.05, 0.05], [0.25, 0.15, 0.08], [0.8, 0.8, 0.8]]))
-    hair = _HAIR[rng.integers(len(_HAIR))]
-    neutral = body.pose({}).vertices
-    joints = body.pose({}).joints
-    hip_z = 0.5 * (joints["l_hip"][2] + joints["r_hip"][2])
-    waist = hip_z + 0.45 * (joints["neck"][2] - hip_z) * rng.uniform(0.35, 0.5)
-    out = np.zeros((len(bones), 3))
-    head_z = []
-    for k, b in enumerate(bones):
-        if b.startswith(("wrist", "finger", "metacarpal", "neck", "head", "eye")):
-            out[k] = skin
-            if b in ("head", "eye.L", "eye.R"):
-                head_z.append(k)
-        elif b.startswith(("foot", "toe")):
-            out[k] = shoes
-        elif b.startswith(("upperleg", "lowerleg")) or (
-            b.startswith(("pelvis", "root", "spine05", "spine04")) and neutral[k, 2] < waist
-        ):
-            out[k] = trousers
-        else:
-            out[k] = shirt
-    head = np.array(head_z)
-    top = neutral[body.head_top_vertex]
-    hv = neutral[head]
-    eye = top[2] - 0.11 * (top[2] - neutral[:, 2].min()) / 1.75
-    centre_y = hv[:, 1].mean()
-    hairy = (hv[:, 2] > eye + 0.04) | ((hv[:, 1] > centre_y + 0.02) & (hv[:, 2] > eye - 0.07))
-    out[head[hairy]] = hair
-    return out * rng.uniform(0.97, 1.03, size=(len(bones), 1))  # slight fabric/skin variation
 
 
 def _placement(rng: np.random.Generator, facing: float, cfg: SynthConfig) -> np.ndarray:
@@ -251,6 +157,7 @@ def _write_stereo(
     rng: np.random.Generator,
     cfg: SynthConfig,
     masks_only: bool = False,
+    hard: HardConditions | None = None,
 ) -> dict[str, list[float]]:
     """The stereo pair of design.md section 7 (posture 5, two parallel cameras ``baseline``
     apart, within 10 degrees of the main camera's azimuth) and its truth masks; returns its
@@ -273,6 +180,9 @@ def _write_stereo(
         )
     posed, _ = _capture(body, STEREO_POSTURE, math.atan2(rig[1], rig[0]), rng, cfg)
     gain = 1 + rng.uniform(-cfg.illumination_change, cfg.illumination_change, 1) + np.zeros(3)
+    hard = hard or HardConditions(cfg, 0, 0, 1)
+    if hard.changes_gain:
+        gain = gain * hard.posture_gain(hard.captures)
     shape = (size[1], size[0], 3)
     for side, cam in cams.items():
         empty = None if masks_only else render(room, cam, light, None)
@@ -281,13 +191,20 @@ def _write_stereo(
             if masks_only:
                 _skip_finish(rng, shape, cfg.noise_sigma)
                 continue
+            if hard.changes_gain:
+                bg_gain = bg_gain * hard.background_gain(i)
             _write_png(
                 stereo / "background" / side / f"bg{i + 1:02d}.png",
-                finish(empty, rng, bg_gain, cfg.noise_sigma),
+                hard.encode(finish(empty, rng, bg_gain, cfg.noise_sigma)),
                 cfg.png_compression,
             )
         colour, person, cast = render(
-            room, cam, light, (posed.vertices, faces, albedo), layers=True
+            room,
+            cam,
+            light,
+            (posed.vertices, faces, albedo),
+            layers=True,
+            all_surfaces=hard.all_surfaces,
         )
         _write_mask(stereo / "truth_masks" / f"{side}.png", person, cfg.png_compression)
         _write_mask(stereo / "truth_masks" / f"{side}_shadow.png", cast, cfg.png_compression)
@@ -296,7 +213,7 @@ def _write_stereo(
             continue
         _write_png(
             stereo / f"{side}.png",
-            finish(colour, rng, gain, cfg.noise_sigma),
+            hard.encode(finish(colour, rng, gain, cfg.noise_sigma)),
             cfg.png_compression,
         )
     if not masks_only:
@@ -337,19 +254,21 @@ def make_subject(
         if sex == "female"
         else rng.uniform(max(lo, hi - 0.4), hi)
     )
-    body = _body_with_height(phen, target, model)
+    body = body_with_height(phen, target, model)
     faces = body.faces
     v = body.pose({}).vertices
     volume = np.einsum("ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]], v[faces[:, 2]])).sum()
     if volume < 0:  # make the triangles counter-clockwise seen from outside (outward normals)
         faces = faces[:, ::-1].copy()
-    albedo = _albedo(body, rng)
+    albedo = sample_albedo(body, rng)
 
     azimuth = rng.uniform(0, 2 * math.pi)
     distance = rng.uniform(*cfg.camera_distance_m)
     cam_h = rng.uniform(*cfg.camera_height_m)
     room = sample_room(rng, azimuth, distance)
     light = _sample_light(rng, azimuth)
+    hard = HardConditions(cfg, seed, index, cfg.background_frames + len(POSTURES))
+    light = hard.scene(room, light)  # the hard rooms' conditions (unchanged when all off)
     horiz = np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
     centre = horiz * distance + np.array([0.0, 0.0, cam_h])
     target_pt = np.array([*rng.uniform(-0.05, 0.05, 2), rng.uniform(0.95, 1.05)])
@@ -365,13 +284,20 @@ def make_subject(
         if masks_only:
             _skip_finish(rng, shape, cfg.noise_sigma)
             continue
-        img = finish(empty, rng, bg_gain, cfg.noise_sigma)
+        if hard.changes_gain:
+            bg_gain = bg_gain * hard.background_gain(i)
+        img = hard.encode(finish(empty, rng, bg_gain, cfg.noise_sigma))
         _write_png(folder / "background" / f"bg{i + 1:02d}.png", img, cfg.png_compression)
     for posture in POSTURES:
         posed, _ = _capture(body, posture, facing, rng, cfg)
         joints_world[f"pose{posture.index}"] = _joints_json(posed)
         colour, person, cast = render(
-            room, camera, light, (posed.vertices, faces, albedo), layers=True
+            room,
+            camera,
+            light,
+            (posed.vertices, faces, albedo),
+            layers=True,
+            all_surfaces=hard.all_surfaces,
         )
         name = f"pose{posture.index}"
         _write_mask(folder / "truth_masks" / f"{name}.png", person, cfg.png_compression)
@@ -381,17 +307,19 @@ def make_subject(
             + rng.uniform(-cfg.illumination_change, cfg.illumination_change)
             + rng.normal(0, 0.005, 3)
         )
+        if hard.changes_gain:
+            gain = gain * hard.posture_gain(cfg.background_frames + posture.index - 1)
         if masks_only:
             _skip_finish(rng, shape, cfg.noise_sigma)
             continue
-        img = finish(colour, rng, gain, cfg.noise_sigma)
+        img = hard.encode(finish(colour, rng, gain, cfg.noise_sigma))
         _write_png(folder / "poses" / f"{name}.png", img, cfg.png_compression)
     if not masks_only:
         save_camera(camera, folder / "camera.yaml")
 
     if cfg.stereo:
         joints_world["stereo"] = _write_stereo(
-            folder / "stereo", body, faces, albedo, room, light, azimuth, rng, cfg, masks_only
+            folder / "stereo", body, faces, albedo, room, light, azimuth, rng, cfg, masks_only, hard
         )
 
     truth["joints_world"] = joints_world

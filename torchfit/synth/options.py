@@ -27,6 +27,16 @@ class SynthConfig:
     noise_sigma: float = 2.0  # sensor noise, 8-bit grey levels
     illumination_change: float = 0.04  # posture images vs background: gain within +-this
     png_compression: int = 3
+    # Hard rooms (configs/synth_hard.yaml), each condition on its own; all off by default, and
+    # then the subjects are bit-identical to those made before these keys existed. Their random
+    # draws come from separate streams, so switching one leaves everything else as it was.
+    wall_shadows: bool = False  # light low and to the side, back wall close, shadow map
+    furniture: bool = False  # bookshelf (book spines), door, cabinet beside the person
+    textures: bool = False  # patterned walls (stripes, checks, wallpaper) and posters
+    exposure_change: float = 0.0  # per posture image: common gain within +-this
+    white_balance: float = 0.0  # per posture image: per-channel gain within +-this
+    exposure_drift: float = 0.0  # per-channel gain drift reaching +-this at the end
+    jpeg_quality: list[int] = field(default_factory=list)  # [low, high]: JPEG round trip
 
     def __post_init__(self) -> None:
         if len(self.image_size) != 2 or min(self.image_size) < 16:
@@ -41,6 +51,19 @@ class SynthConfig:
             raise ConfigError(
                 f"synth config: key 'background_frames' must be >= 5, got {self.background_frames}"
             )
+        if self.jpeg_quality and (
+            len(self.jpeg_quality) != 2
+            or not 1 <= self.jpeg_quality[0] <= self.jpeg_quality[1] <= 100
+        ):
+            raise ConfigError(
+                "synth config: key 'jpeg_quality' expects [] or [low, high] within 1..100, "
+                f"got {self.jpeg_quality}"
+            )
+        for key in ("exposure_change", "white_balance", "exposure_drift"):
+            if not 0.0 <= getattr(self, key) < 0.5:
+                raise ConfigError(
+                    f"synth config: key '{key}' must be in [0, 0.5), got {getattr(self, key)}"
+                )
         if not 0 <= self.png_compression <= 9:
             raise ConfigError(
                 f"synth config: key 'png_compression' must be in 0..9, got {self.png_compression}"

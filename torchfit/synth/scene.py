@@ -5,21 +5,27 @@ room is described in the frame of its main camera's azimuth: ``f`` (horizontal, 
 towards the camera), ``s = z x f`` and ``z``. Background surfaces are ray-cast per pixel (exact
 perspective and lens distortion, via ``cv2.undistortPoints``); the body is z-buffered on top
 (:mod:`torchfit.synth.raster`). Light is one directional source plus ambient; the body's
-shadow on the floor is the body projected along the light and rasterised in the image.
-Colours are linear RGB in [0, 1]; images are written as 8-bit.
+shadow on the floor is the body projected along the light and rasterised in the image, or,
+for the hard rooms, a shadow map that darkens every surface (:mod:`torchfit.synth.shadow`).
+The room itself is drawn in :mod:`torchfit.synth.room`, its textures in
+:mod:`torchfit.synth.texture`. Colours are linear RGB in [0, 1]; images are written as 8-bit.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import torch
 
-from torchfit.camera import Camera, look_at, project_points
+from torchfit.camera import Camera, project_points
 from torchfit.synth.raster import interpolate, lambert, rasterize, vertex_normals
+from torchfit.synth.room import Box, Light, Room, sample_camera, sample_room
+from torchfit.synth.shadow import shadow_map_test
+from torchfit.synth.texture import furniture_albedo, pattern_albedo, poster_albedo
+from torchfit.synth.texture import hash01 as _hash
+from torchfit.synth.texture import value_noise as _value_noise
 
 __all__ = [
     "Box",
@@ -32,157 +38,6 @@ __all__ = [
     "body_coverage",
     "finish",
 ]
-
-
-@dataclass
-class Box:
-    """An axis-aligned box in the room frame: ``lo``/``hi`` are (f, s, z) corners, metres."""
-
-    lo: np.ndarray
-    hi: np.ndarray
-    colour: np.ndarray
-
-
-@dataclass
-class Room:
-    """A rectangular room around the origin, in the frame (f, s, z) of ``azimuth``."""
-
-    azimuth: float  # radians, the direction of f in the world xy plane
-    back: float  # back wall at f = -back
-    front: float  # wall behind the camera at f = +front
-    half_width: float  # side walls at s = +-half_width
-    ceiling: float
-    wall_colour: np.ndarray
-    floor_colours: np.ndarray  # (2, 3) two tones
-    floor_kind: str  # "planks" or "tiles"
-    plank_width: float
-    noise: np.ndarray  # (G, G) low-frequency value noise in [-1, 1]
-    boxes: list[Box] = field(default_factory=list)
-    pictures: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
-    # pictures: ((s0, z0), (s1, z1), colour) rectangles on the back wall
-
-    @property
-    def basis(self) -> np.ndarray:
-        """(3, 3) rows f, s, z in world coordinates."""
-        c, s = math.cos(self.azimuth), math.sin(self.azimuth)
-        return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-@dataclass
-class Light:
-    """A directional light (unit vector towards the light) and ambient intensity."""
-
-    direction: np.ndarray
-    ambient: float
-    diffuse: float
-
-
-def sample_room(rng: np.random.Generator, azimuth: float, camera_distance: float) -> Room:
-    """A random room whose main camera stands at ``azimuth``, ``camera_distance`` away."""
-    wall = rng.choice(
-        np.array(
-            [
-                [0.85, 0.83, 0.78],
-                [0.78, 0.82, 0.80],
-                [0.86, 0.80, 0.70],
-                [0.70, 0.74, 0.80],
-                [0.80, 0.78, 0.74],
-                [0.62, 0.66, 0.60],
-            ]
-        )
-    ) * rng.uniform(0.9, 1.05)
-    kind = str(rng.choice(["planks", "tiles"]))
-    if kind == "planks":
-        base = rng.choice(np.array([[0.55, 0.38, 0.22], [0.62, 0.48, 0.32], [0.40, 0.28, 0.18]]))
-    else:
-        base = rng.choice(np.array([[0.55, 0.55, 0.52], [0.45, 0.42, 0.40], [0.62, 0.58, 0.50]]))
-    floor = np.stack([base, base * rng.uniform(0.8, 0.92)])
-    back = rng.uniform(1.5, 2.3)
-    half = rng.uniform(2.6, 3.6)
-    boxes = []
-    # clutter along the back wall, away from the middle, and along the side walls
-    for sign in (-1, 1):
-        if rng.random() < 0.8:
-            width, depth, height = (
-                rng.uniform(0.5, 1.2),
-                rng.uniform(0.35, 0.6),
-                rng.uniform(0.5, 1.9),
-            )
-            s0 = sign * rng.uniform(0.9, half - width - 0.1)
-            s_lo, s_hi = sorted((s0, s0 + sign * width))
-            boxes.append(
-                Box(
-                    np.array([-back, s_lo, 0.0]),
-                    np.array([-back + depth, s_hi, height]),
-                    rng.uniform(0.15, 0.75, 3),
-                )
-            )
-        if rng.random() < 0.6:
-            f0 = rng.uniform(-back + 0.2, 1.0)
-            size = rng.uniform(0.3, 0.6, 3) * np.array([1.0, 1.0, 1.5])
-            s_edge = sign * half
-            s_lo, s_hi = sorted((s_edge, s_edge - sign * size[1]))
-            boxes.append(
-                Box(
-                    np.array([f0, s_lo, 0.0]),
-                    np.array([f0 + size[0], s_hi, size[2]]),
-                    rng.uniform(0.15, 0.75, 3),
-                )
-            )
-    pictures = []
-    for _ in range(rng.integers(1, 4)):
-        s0, z0 = rng.uniform(-2.0, 1.6), rng.uniform(1.2, 1.8)
-        w, h = rng.uniform(0.3, 0.8), rng.uniform(0.25, 0.6)
-        pictures.append((np.array([s0, z0]), np.array([s0 + w, z0 + h]), rng.uniform(0.1, 0.9, 3)))
-    return Room(
-        azimuth=azimuth,
-        back=back,
-        front=camera_distance + rng.uniform(0.8, 1.5),
-        half_width=half,
-        ceiling=rng.uniform(2.6, 3.0),
-        wall_colour=wall,
-        floor_colours=floor,
-        floor_kind=kind,
-        plank_width=rng.uniform(0.1, 0.2),
-        noise=rng.uniform(-1, 1, (9, 9)),
-        boxes=boxes,
-        pictures=pictures,
-    )
-
-
-def sample_camera(
-    rng: np.random.Generator,
-    centre: np.ndarray,
-    target: np.ndarray,
-    image_size: tuple[int, int],
-    view_height_m: float,
-) -> Camera:
-    """A camera at ``centre`` looking at ``target``, its focal length such that about
-    ``view_height_m`` metres are seen vertically at the target, with a little lens distortion.
-    """
-    width, height = image_size
-    d = float(np.linalg.norm(target - centre))
-    f = height * d / view_height_m
-    K = torch.tensor(
-        [
-            [f, 0.0, (width - 1) / 2 + rng.uniform(-6, 6)],
-            [0.0, f * rng.uniform(0.998, 1.002), (height - 1) / 2 + rng.uniform(-6, 6)],
-            [0.0, 0.0, 1.0],
-        ],
-        dtype=torch.float64,
-    )
-    dist = torch.tensor(
-        [
-            rng.uniform(-0.08, 0.02),
-            rng.uniform(-0.02, 0.05),
-            rng.uniform(-5e-4, 5e-4),
-            rng.uniform(-5e-4, 5e-4),
-            0.0,
-        ],
-        dtype=torch.float64,
-    )
-    R, t = look_at(torch.from_numpy(centre)[None], torch.from_numpy(target)[None])
-    return Camera(K=K, dist=dist, R=R[0], t=t[0], image_size=image_size)
 
 
 # --------------------------------------------------------------------------------------------
@@ -201,29 +56,6 @@ def _pixel_rays(camera: Camera) -> np.ndarray:
     ).reshape(-1, 2)
     rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], 1) @ camera.R[0].numpy()  # R^T d
     return rays.reshape(height, width, 3)
-
-
-def _value_noise(grid: np.ndarray, a: np.ndarray, b: np.ndarray, scale: float) -> np.ndarray:
-    """Bilinear value noise of period ``grid.shape * scale`` metres at coordinates (a, b)."""
-    n = grid.shape[0]
-    x = (a / scale) % (n - 1)
-    y = (b / scale) % (n - 1)
-    i, j = np.floor(x).astype(int), np.floor(y).astype(int)
-    fx, fy = x - i, y - j
-    return (
-        grid[i, j] * (1 - fx) * (1 - fy)
-        + grid[i + 1, j] * fx * (1 - fy)
-        + grid[i, j + 1] * (1 - fx) * fy
-        + grid[i + 1, j + 1] * fx * fy
-    )
-
-
-def _hash(*ints: np.ndarray) -> np.ndarray:
-    """A deterministic pseudo-random value in [0, 1) per integer tuple."""
-    h = np.zeros_like(ints[0], dtype=np.float64)
-    for k, i in enumerate(ints):
-        h = h + i * (12.9898 + 17.17 * k)
-    return (np.sin(h) * 43758.5453) % 1.0
 
 
 def _floor_albedo(room: Room, p: np.ndarray) -> np.ndarray:
@@ -252,6 +84,8 @@ def _floor_albedo(room: Room, p: np.ndarray) -> np.ndarray:
 
 def _wall_albedo(room: Room, a: np.ndarray, z: np.ndarray, back: bool) -> np.ndarray:
     base = room.wall_colour * (1 + 0.03 * _value_noise(room.noise, a, z, 0.5))[..., None]
+    if room.pattern is not None:
+        base = pattern_albedo(room.pattern, a, z) * (base / room.wall_colour)
     skirting = (z < 0.09)[..., None]
     out = np.where(skirting, np.array([0.92, 0.92, 0.9]), base)
     if back:
@@ -263,13 +97,28 @@ def _wall_albedo(room: Room, a: np.ndarray, z: np.ndarray, back: bool) -> np.nda
             stripes = colour * (0.75 + 0.25 * np.sin(a * 23 + z * 11))[..., None]
             out = np.where(inside[..., None], stripes, out)
             out = np.where(frame[..., None], np.array([0.2, 0.15, 0.1]), out)
+        for poster in room.posters:
+            (s0, z0), (s1, z1) = poster.lo, poster.hi
+            inside = (a >= s0) & (a <= s1) & (z >= z0) & (z <= z1)
+            out[inside] = poster_albedo(poster, a[inside], z[inside])
     return out
 
 
-def _background(
-    room: Room, camera: Camera, light: Light
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Ray-cast the room: (H, W, 3) shaded colour, (H, W) depth, (H, W) floor mask + points."""
+@dataclass
+class _Surfaces:
+    """The ray-cast empty room, per pixel: shaded ``colour`` (H, W, 3), camera-frame
+    ``depth`` (H, W), world ``points`` (H, W, 3) and unit ``normals`` (H, W, 3), and ``kind``
+    (H, W) int8: 1 floor, 2 ceiling, 3-6 walls, 7 boxes."""
+
+    colour: np.ndarray
+    depth: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    kind: np.ndarray
+
+
+def _background(room: Room, camera: Camera, light: Light) -> _Surfaces:
+    """Ray-cast the room (walls, floor, ceiling, boxes) and shade it."""
     basis = room.basis
     centre = camera.centre[0].numpy() @ basis.T  # in (f, s, z)
     rays = _pixel_rays(camera) @ basis.T
@@ -322,13 +171,17 @@ def _background(
         q = centre + tnear[..., None] * rays
         tex = 1 + 0.04 * np.sin(q[..., 0] * 40 + q[..., 1] * 40 + q[..., 2] * 90)
         albedo[hit] = (box.colour * tex[..., None])[hit]
+        if box.texture != "plain":  # furniture: its front (facing +f) carries the texture
+            front = hit & (axis == 0)
+            albedo[front] = furniture_albedo(
+                box.texture, box.colour, q[front][:, 1], q[front][:, 2], box.lo, box.hi
+            )
         p[hit] = q[hit]
     world_normal = normal @ basis
     colour = lambert(albedo, world_normal, light.direction, light.ambient, light.diffuse)
     # depth along the optical axis
     cam_z = (p @ basis) @ camera.R[0].numpy()[2] + camera.t[0, 2].item()
-    floor_points = p @ basis
-    return colour, cam_z, np.where((kind == 1)[..., None], floor_points, np.nan)
+    return _Surfaces(colour, cam_z, p @ basis, world_normal, kind)
 
 
 # --------------------------------------------------------------------------------------------
@@ -361,7 +214,7 @@ def body_coverage(
 
 def room_depth(room: Room, camera: Camera, light: Light) -> np.ndarray:
     """(H, W) camera-frame depth of the empty room, metres (for :func:`body_coverage`)."""
-    return _background(room, camera, light)[1]
+    return _background(room, camera, light).depth
 
 
 def render(
@@ -371,8 +224,9 @@ def render(
     body: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     shadow_strength: float = 1.0,
     layers: bool = False,
+    all_surfaces: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Render one view: the room and, optionally, a body with its floor shadow.
+    """Render one view: the room and, optionally, a body with its cast shadow.
 
     Args:
         room, camera, light: the scene.
@@ -380,14 +234,20 @@ def render(
             room.
         shadow_strength: 1 for a full cast shadow (ambient light only inside it).
         layers: also return the true person and cast-shadow masks (evaluation data).
+        all_surfaces: cast the body's shadow on every surface the light reaches (walls,
+            boxes, furniture, floor) with a shadow map (:mod:`torchfit.synth.shadow`); by
+            default it falls on the floor only (the body projected on z = 0).
 
     Returns:
         (H, W, 3) float RGB in [0, 1] before noise; with ``layers``, the tuple
         ``(colour, person, shadow)``: ``person`` (H, W) bool where the body is visible (the
         same coverage that is painted), ``shadow`` (H, W) bool where the blurred cast shadow
-        darkens the floor by at least half its full strength and no body is visible.
+        reaches at least half its full strength on a surface it darkens (the floor; with
+        ``all_surfaces`` any surface facing the light whose full shadow would remove at least
+        10 % of its light) and no body is visible.
     """
-    colour, depth, floor_points = _background(room, camera, light)
+    surf = _background(room, camera, light)
+    colour, depth = surf.colour, surf.depth
     h, w = depth.shape
     if body is None:
         if layers:
@@ -395,16 +255,22 @@ def render(
         return colour
     vertices, faces, albedo = body
     size = camera.image_size
-    # cast shadow: the body projected on the floor along the light
     L = light.direction
-    shadow_pts = vertices - (vertices[:, 2:3] / L[2]) * L[None]
-    spx, sdepth = _project(shadow_pts, camera)
-    shadow = rasterize(spx, sdepth, faces, size).mask.astype(np.float32)
-    shadow = cv2.GaussianBlur(shadow, (0, 0), 1.5)
-    is_floor = np.isfinite(floor_points[..., 0])
-    lit = light.ambient + light.diffuse * max(L[2], 0.0)
-    ratio = light.ambient / lit
-    factor = 1 - shadow_strength * shadow * is_floor * (1 - ratio)
+    if all_surfaces:  # shadow map: the body as seen from the light, tested per surface point
+        hidden = shadow_map_test(vertices, faces, L, surf.points).astype(np.float32)
+        shadow = cv2.GaussianBlur(hidden, (0, 0), 1.5)
+        lit = light.ambient + light.diffuse * np.clip(surf.normals @ L, 0.0, None)
+        receives = 1 - light.ambient / lit >= 0.1
+        factor = 1 - shadow_strength * shadow * (1 - light.ambient / lit)
+    else:  # the body projected on the floor along the light
+        shadow_pts = vertices - (vertices[:, 2:3] / L[2]) * L[None]
+        spx, sdepth = _project(shadow_pts, camera)
+        shadow = rasterize(spx, sdepth, faces, size).mask.astype(np.float32)
+        shadow = cv2.GaussianBlur(shadow, (0, 0), 1.5)
+        receives = surf.kind == 1
+        lit = light.ambient + light.diffuse * max(L[2], 0.0)
+        ratio = light.ambient / lit
+        factor = 1 - shadow_strength * shadow * receives * (1 - ratio)
     colour = colour * factor[..., None]
     # the body, z-buffered against the room
     px, dep = _project(vertices, camera)
@@ -415,7 +281,7 @@ def render(
     shaded = lambert(alb, normals, L, light.ambient, light.diffuse)
     colour[visible] = shaded[visible]
     if layers:
-        cast = (shadow * is_floor >= 0.5) & ~visible & (shadow_strength > 0)
+        cast = (shadow * receives >= 0.5) & ~visible & (shadow_strength > 0)
         return colour, visible, cast
     return colour
 
