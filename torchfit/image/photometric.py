@@ -38,6 +38,7 @@ still resolved; without this the clipped wall would differ from the background b
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -45,7 +46,13 @@ import torch
 from torchfit.errors import SegmentationError
 from torchfit.image.background import BackgroundModel, _check_images, _distance_kernel
 
-__all__ = ["PhotometricResult", "estimate_gains", "compensate", "match_background"]
+__all__ = [
+    "PhotometricResult",
+    "estimate_gains",
+    "compensate",
+    "match_background",
+    "sample_stride",
+]
 
 # 8-bit levels outside which a value says little about a gain: quantisation noise near black,
 # clipping near white
@@ -83,6 +90,12 @@ class PhotometricResult:
         return torch.where(self.applied.view(-1, 1), self.gains.cpu(), 1.0)
 
 
+def sample_stride(images: torch.Tensor, samples: int = 6_000) -> int:
+    """The pixel step (in each direction) that leaves about ``samples`` pixels of an image."""
+    h, w = images.shape[-2:]
+    return max(1, int(math.sqrt(h * w / samples)))
+
+
 def _mode(values: torch.Tensor) -> float:
     """Peak of a lightly smoothed histogram of log-ratios ``(N,)`` in ``[-_SPAN, _SPAN]``."""
     bins = int(round(2 * _SPAN / _BIN))
@@ -94,7 +107,7 @@ def _mode(values: torch.Tensor) -> float:
 def estimate_gains(
     images: torch.Tensor,
     background: torch.Tensor,
-    stride: int = 4,
+    stride: int | None = None,
     window: float = 0.04,
     min_inliers: float = 0.2,
     max_gain: float = 1.6,
@@ -106,7 +119,8 @@ def estimate_gains(
         images: ``(B, 3, H, W)`` RGB in ``[0, 1]``.
         background: ``(B_m, 3, H, W)`` mean RGB of the background frames in ``[0, 1]``,
             ``B_m`` 1 or ``B``.
-        stride: sample every ``stride``-th pixel in each direction.
+        stride: sample every ``stride``-th pixel in each direction; None: about 6 000
+            samples (every 8th pixel at 720x576).
         window: half-width, in log-ratio (about a fraction), of the inlier window.
         min_inliers: least fraction of the usable samples that must agree with the gains.
         max_gain: largest gain (and ``1 / max_gain`` the smallest) accepted.
@@ -131,6 +145,7 @@ def estimate_gains(
         raise SegmentationError(
             f"images: batch {b} does not match the background's batch {background.shape[0]}"
         )
+    stride = stride or sample_stride(images)
     img = images[..., ::stride, ::stride].float().flatten(2)  # (B, 3, N)
     bg = background[..., ::stride, ::stride].float().flatten(2).expand(b, -1, -1)
     usable = ((img > _DARK) & (img < _BRIGHT) & (bg > _DARK) & (bg < _BRIGHT)).all(1)  # (B, N)
@@ -178,9 +193,10 @@ def compensate(images: torch.Tensor, background: torch.Tensor, gains: torch.Tens
         recorded them, same dtype.
     """
     g = gains.to(images.dtype).view(-1, 3, 1, 1)
-    out = (images / g).clamp(0.0, 1.0)
-    clipped = images >= _CLIPPED
-    return torch.where(clipped, torch.maximum(out, background.to(images.dtype)), out)
+    out = (images / g).clamp_(0.0, 1.0)
+    # clipped pixels: max(I / g, B); elsewhere max(I / g, 0) = I / g
+    floor = (images >= _CLIPPED).to(images.dtype).mul_(background.to(images.dtype))
+    return torch.maximum(out, floor, out=out)
 
 
 def match_background(
@@ -188,7 +204,7 @@ def match_background(
     model: BackgroundModel,
     threshold: float = 4.0,
     min_effect: float = 0.02,
-    stride: int = 4,
+    stride: int | None = None,
 ) -> tuple[torch.Tensor, PhotometricResult]:
     """Estimate each image's gains against the background model and undo those that matter.
 
@@ -207,7 +223,8 @@ def match_background(
             area of a person framed whole (3-6 % in the demo); a global change of exposure
             that matters turns much of the background into "person" (demo posture images 3 %
             brighter: 60 % of the image on average, ``benchmarks/eval_photometric.py``).
-        stride: sample every ``stride``-th pixel in each direction (estimate and effect).
+        stride: sample every ``stride``-th pixel in each direction (estimate and effect);
+            None: about 6 000 samples.
 
     Returns:
         The ``(B, 3, H, W)`` images, compensated where applied, and the
@@ -221,21 +238,29 @@ def match_background(
             "model: photometric compensation needs rgb_mean (use fit_background), "
             "or set segmentation.photometric: false"
         )
+    stride = stride or sample_stride(images)
     result = estimate_gains(images, model.rgb_mean, stride=stride)
     if not bool(result.estimated.any()):
         return images, result
-    compensated = compensate(images, model.rgb_mean, result.gains)
+    sub = (slice(None), slice(None), slice(None, None, stride), slice(None, None, stride))
 
     def flagged(x: torch.Tensor) -> torch.Tensor:
-        sub = (slice(None), slice(None), slice(None, None, stride), slice(None, None, stride))
         d = _distance_kernel(
-            x[sub], model.mean[sub], model.precision[sub], model.color_space, model.gamma
+            x, model.mean[sub], model.precision[sub], model.color_space, model.gamma
         )
         return (d > threshold).flatten(1).float().mean(1).cpu()
 
-    result.effect = flagged(images) - flagged(compensated)
+    # the effect on the samples first: a frame without a change costs no full-size pass
+    sampled = images[sub]
+    undone = compensate(sampled, model.rgb_mean[sub], result.gains)
+    result.effect = flagged(sampled) - flagged(undone)
     result.applied = result.estimated & (result.effect >= min_effect)
     if not bool(result.applied.any()):
         return images, result
-    apply = result.applied.to(images.device).view(-1, 1, 1, 1)
-    return torch.where(apply, compensated, images), result
+    if bool(result.applied.all()):
+        return compensate(images, model.rgb_mean, result.gains), result
+    idx = result.applied.nonzero()[:, 0].to(images.device)
+    bg = model.rgb_mean if model.rgb_mean.shape[0] == 1 else model.rgb_mean[idx]
+    out = images.clone()
+    out[idx] = compensate(images[idx], bg, result.gains[idx])
+    return out, result
