@@ -149,7 +149,9 @@ def estimate_gains(
     img = images[..., ::stride, ::stride].float().flatten(2)  # (B, 3, N)
     bg = background[..., ::stride, ::stride].float().flatten(2).expand(b, -1, -1)
     usable = ((img > _DARK) & (img < _BRIGHT) & (bg > _DARK) & (bg < _BRIGHT)).all(1)  # (B, N)
-    ratio = img.clamp_min(_DARK).log() - bg.clamp_min(_DARK).log()
+    # a few thousand samples per image: the robust fit runs on the CPU
+    ratio = (img.clamp_min(_DARK).log() - bg.clamp_min(_DARK).log()).cpu()
+    usable = usable.cpu()
     gains = torch.ones(b, 3)
     inliers = torch.zeros(b)
     estimated = torch.zeros(b, dtype=torch.bool)
