@@ -5,7 +5,9 @@
 
 Prints machine and versions, then
 
-1. frames per second at 720x576 for the whole chain, batched: Mahalanobis test (HSL),
+1. frames per second at 720x576 for the whole chain, batched: photometric compensation
+   (per-channel gains against the background, ``segmentation.photometric``; off with
+   ``--no-photometric``), Mahalanobis test (HSL),
    clean-up (opening, largest region, closing, hole filling), ordered outer contour, contour
    mask and 3-4 chamfer distance map; with the time of each stage; the colour test eager and
    through ``torch.compile`` (``segmentation.compile: true``; compile time printed apart);
@@ -39,7 +41,9 @@ from torchfit.image import (
     distance_map,
     euclidean_distance_transform,
     fit_background,
+    implausible,
     mahalanobis_distance,
+    match_background,
     outer_contours,
 )
 
@@ -65,13 +69,18 @@ def machine() -> str:
     )
 
 
+#: the clock of every timing: wall time, or with --cpu-time the process's CPU time
+CLOCK = {"clock": time.perf_counter}
+
+
 def median_time(fn, repeats: int) -> float:
+    clock = CLOCK["clock"]
     fn()
     times = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = clock()
         fn()
-        times.append(time.perf_counter() - t0)
+        times.append(clock() - t0)
     return statistics.median(times)
 
 
@@ -105,16 +114,33 @@ def main() -> None:
         default=["eager", "compiled"],
         help="colour test eager and/or through torch.compile (segmentation.compile)",
     )
+    p.add_argument(
+        "--no-photometric",
+        action="store_true",
+        help="leave out the photometric compensation (segmentation.photometric: false)",
+    )
+    p.add_argument(
+        "--cpu-time",
+        action="store_true",
+        help="time with the process's CPU time instead of wall time (on a shared machine; "
+        "with --threads 1 it is the wall time a quiet machine would give)",
+    )
     args = p.parse_args()
+    if args.cpu_time:
+        CLOCK["clock"] = time.process_time
     if args.threads:
         torch.set_num_threads(args.threads)
     print(machine())
     gen = torch.Generator().manual_seed(0)
-    cfg = SegmentationOptions()
+    cfg = SegmentationOptions(photometric=not args.no_photometric)
 
-    print(f"\n1. whole chain at {W}x{H}, CPU, median of {args.repeats}")
+    clock = CLOCK["clock"]
+    unit = "CPU time" if args.cpu_time else "wall time"
+    print(f"\n1. whole chain at {W}x{H}, CPU, {unit}, median of {args.repeats}")
+    print(f"   photometric compensation: {'on' if cfg.photometric else 'off'}")
     print(
-        "   colour test  batch  frames/s  ms/frame | test  clean-up  contour  dist-map   (ms/frame)"
+        "   colour test  batch  frames/s  ms/frame | photo  test  clean-up  contour  dist-map"
+        "   (ms/frame)"
     )
     contours_for_dt = None
     for mode, b in [(m, b) for m in args.modes for b in args.batch]:
@@ -128,21 +154,24 @@ def main() -> None:
             print(f"   (compiling for batch {b}: {time.perf_counter() - t0:.1f} s)")
 
         def chain(stages=stages, model=model, images=images, compiled=compiled):
-            t0 = time.perf_counter()
-            raw = mahalanobis_distance(model, images, compiled=compiled) > cfg.threshold
-            t1 = time.perf_counter()
+            tp = clock()
+            matched = match_background(images, model)[0] if cfg.photometric else images
+            t0 = clock()
+            raw = mahalanobis_distance(model, matched, compiled=compiled) > cfg.threshold
+            t1 = clock()
             masks = clean_mask(raw, cfg.open_kernel, cfg.close_kernel, cfg.fill_holes)
-            t2 = time.perf_counter()
+            implausible(masks, cfg.plausibility)
+            t2 = clock()
             pts = outer_contours(masks)
             seeds = torch.zeros_like(masks)
             for i, c in enumerate(pts):
                 seeds[i, 0, c[:, 1], c[:, 0]] = True
-            t3 = time.perf_counter()
+            t3 = clock()
             dist = distance_map(seeds, cfg.distance)
-            t4 = time.perf_counter()
+            t4 = clock()
             for k, v in zip(
-                ("test", "clean", "contour", "dist"),
-                (t1 - t0, t2 - t1, t3 - t2, t4 - t3),
+                ("photo", "test", "clean", "contour", "dist"),
+                (t0 - tp, t1 - t0, t2 - t1, t3 - t2, t4 - t3),
                 strict=True,
             ):
                 stages.setdefault(k, []).append(v)
@@ -152,7 +181,8 @@ def main() -> None:
         per = {k: statistics.median(v[1:]) / b * 1e3 for k, v in stages.items()}
         print(
             f"   {mode:11s}  {b:5d}  {b / total:8.1f}  {total / b * 1e3:8.1f} | "
-            f"{per['test']:5.1f}  {per['clean']:8.1f}  {per['contour']:7.1f}  {per['dist']:8.1f}"
+            f"{per['photo']:5.1f}  {per['test']:5.1f}  {per['clean']:8.1f}  {per['contour']:7.1f}  "
+            f"{per['dist']:8.1f}"
         )
         contours_for_dt = contour_mask(
             clean_mask(mahalanobis_distance(model, images) > cfg.threshold)

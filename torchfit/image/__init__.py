@@ -7,7 +7,9 @@ the top-left pixel and points are ``(u, v)`` with ``v`` down (``docs/design.md``
 - :mod:`~torchfit.image.background`: colour features and the per-pixel background model.
 - :mod:`~torchfit.image.shadow`: the explicit cast-shadow test.
 - :mod:`~torchfit.image.morphology`: opening, closing, largest region, hole filling.
+- :mod:`~torchfit.image.photometric`: per-channel gains (exposure, white balance) undone.
 - :mod:`~torchfit.image.segment`: :class:`SegmentationOptions` and the whole chain.
+- :mod:`~torchfit.image.plausibility`: what a person's silhouette cannot look like.
 - :mod:`~torchfit.image.contours`: ordered outer contours.
 - :mod:`~torchfit.image.distance`: distance transforms and bilinear sampling of the maps.
 """
@@ -32,6 +34,13 @@ from torchfit.image.morphology import (
     fill_holes,
     largest_component,
 )
+from torchfit.image.photometric import (
+    PhotometricResult,
+    compensate,
+    estimate_gains,
+    match_background,
+)
+from torchfit.image.plausibility import PlausibilityOptions, implausible, silhouette_shape
 from torchfit.image.segment import (
     SegmentationOptions,
     SegmentationResult,
@@ -52,6 +61,13 @@ __all__ = [
     "binary_closing",
     "largest_component",
     "fill_holes",
+    "PhotometricResult",
+    "estimate_gains",
+    "compensate",
+    "match_background",
+    "PlausibilityOptions",
+    "silhouette_shape",
+    "implausible",
     "SegmentationOptions",
     "SegmentationResult",
     "clean_mask",

@@ -4,19 +4,22 @@ Conventions: images ``(B, 3, H, W)`` RGB in ``[0, 1]`` (any float dtype, any dev
 ``(B, 1, H, W)`` bool, ``True`` on the person. :class:`SegmentationOptions` holds every knob
 of the chain (it is also the ``segmentation:`` section of the run config).
 
-The chain: the Mahalanobis test of :mod:`torchfit.image.background` above ``threshold``; with
+The chain: with ``photometric`` (default) each frame's per-channel gains against the background
+frames are estimated and undone (:mod:`torchfit.image.photometric`: exposure, white balance);
+the Mahalanobis test of :mod:`torchfit.image.background` above ``threshold``; with
 ``shadow_test`` the pixels :func:`~torchfit.image.shadow.shadow_mask` takes for a cast shadow
 (within the lowest ``shadow_band`` of the foreground, and with ``shadow_bridge`` not between
 the body and a part cut off below it) become background again; then :func:`clean_mask`:
 opening, largest 8-connected region, closing and hole filling. ``fill_holes`` fills background
 regions enclosed by the silhouette; with ``max_hole_area`` only those up to that fraction of
 the silhouette's area, so that a large enclosed gap (between the legs, closed below by a shadow
-or the feet) stays open.
+or the feet) stays open. ``plausibility`` holds the bounds that
+:func:`~torchfit.image.plausibility.implausible` checks the result against (the pipeline does).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -26,6 +29,8 @@ from torchfit.errors import ConfigError, ShapeError
 from torchfit.image.background import BackgroundModel, mahalanobis_distance
 from torchfit.image.morphology import binary_closing, binary_opening, largest_component
 from torchfit.image.morphology import fill_holes as _fill_holes
+from torchfit.image.photometric import match_background
+from torchfit.image.plausibility import PlausibilityOptions
 from torchfit.image.shadow import bridged, lower_band, shadow_mask
 
 __all__ = ["SegmentationOptions", "SegmentationResult", "clean_mask", "segment"]
@@ -63,6 +68,12 @@ class SegmentationOptions:
     # floor beside or in front of the feet never has
     shadow_bridge: bool = False
     distance: Literal["chamfer", "euclidean"] = "chamfer"
+    # estimate each frame's per-channel gains (exposure, white balance) against the background
+    # frames and undo them before the tests (torchfit.image.photometric)
+    photometric: bool = True
+    # what a silhouette of a standing person can look like (torchfit.image.plausibility);
+    # the pipeline fails a subject whose silhouette is not
+    plausibility: PlausibilityOptions = field(default_factory=PlausibilityOptions)
     # run the per-pixel colour test through torch.compile (needs a C++ compiler on CPU; about a
     # minute to compile the first time, cached afterwards; several times faster per frame)
     compile: bool = False
@@ -135,12 +146,16 @@ class SegmentationResult:
             of the person that look like a darker copy of the floor (grey trousers or shoes on
             a grey or brown floor) end up here too: the fit can treat these pixels as
             uncertain instead of as background (``fit.ignore_shadow``).
+        gains: ``(B, 3)`` the per-channel gains undone before the tests (``photometric``),
+            1 where none was (none estimated, or one the test would not notice); None
+            without ``photometric``.
     """
 
     masks: torch.Tensor
     distance: torch.Tensor
     found: torch.Tensor
     shadow: torch.Tensor | None = None
+    gains: torch.Tensor | None = None
 
 
 def segment(
@@ -156,13 +171,19 @@ def segment(
             ``B``.
         options: ``threshold``, ``open_kernel``, ``close_kernel``, ``fill_holes``,
             ``max_hole_area``, ``largest_region`` and, with ``shadow_test``, ``shadow_ratio``,
-            ``shadow_chroma`` and ``shadow_band`` are used.
+            ``shadow_chroma`` and ``shadow_band`` are used; with ``photometric`` each image's
+            exposure and white balance are matched to the background's first
+            (:func:`~torchfit.image.photometric.match_background`).
 
     Returns:
         :class:`SegmentationResult`; an image without a person has ``found = False`` and an
         empty mask (no exception, so one bad image does not stop a batch).
     """
     options = options or SegmentationOptions()
+    gains = None
+    if options.photometric:
+        images, photometric = match_background(images, background, options.threshold)
+        gains = photometric.undone
     distance = mahalanobis_distance(background, images, compiled=options.compile)
     raw = distance > options.threshold
     removed = torch.zeros_like(raw)
@@ -191,6 +212,6 @@ def segment(
         options.largest_region,
         options.max_hole_area,
     )
-    return SegmentationResult(masks, distance, masks.flatten(1).any(1), removed)
+    return SegmentationResult(masks, distance, masks.flatten(1).any(1), removed, gains)
 
 

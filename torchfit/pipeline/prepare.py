@@ -13,6 +13,7 @@ from torchfit.config.schema import Config
 from torchfit.errors import DataError, SegmentationError
 from torchfit.fit.person import PersonData, person_data_from_masks
 from torchfit.image.background import fit_background
+from torchfit.image.plausibility import implausible
 from torchfit.image.segment import SegmentationOptions, segment
 from torchfit.io.dataset import Subject
 from torchfit.io.images import load_frames
@@ -54,7 +55,10 @@ def segment_subject(
         test removed (6, H, W) bool.
 
     Raises:
-        DataError: invalid subject folder; SegmentationError: no person in a posture image.
+        DataError: invalid subject folder; SegmentationError: no person in a posture image,
+        or a silhouette no person in that posture can have
+        (:func:`~torchfit.image.plausibility.implausible`): ``"segmentation implausible in
+        pose4: it covers 100 % of the image (at most 50 %); ..."``.
     """
     if isinstance(segmentation, Config):
         segmentation = segmentation.segmentation
@@ -71,6 +75,10 @@ def segment_subject(
     ]
     if missing:
         raise SegmentationError(f"no person found in {', '.join(missing)}")
+    reasons = implausible(seg.masks, segmentation.plausibility)
+    wrong = [f"pose{i + 1}: {why}" for i, why in enumerate(reasons) if why]
+    if wrong:
+        raise SegmentationError(f"segmentation implausible in {'; in '.join(wrong)}")
     return images, seg.masks[:, 0], seg.shadow[:, 0]
 
 

@@ -14,6 +14,7 @@ import torch
 
 from torchfit.image.background import fit_background
 from torchfit.image.morphology import fill_holes
+from torchfit.image.plausibility import implausible
 from torchfit.image.segment import SegmentationOptions, segment
 from torchfit.io.dataset import StereoInfo
 from torchfit.io.images import load_frames, read_image
@@ -104,7 +105,9 @@ def measure_stereo_pair(
             shadows use ``gamma: 0.05``).
 
     Returns:
-        A :class:`StereoResult`; failures carry the rule and the view.
+        A :class:`StereoResult`; failures carry the rule and the view (a silhouette that
+        cannot be a person, :func:`~torchfit.image.plausibility.implausible`, fails the rule
+        ``"segmentation"``).
 
     Raises:
         DataError: an image or background frame cannot be read.
@@ -118,6 +121,11 @@ def measure_stereo_pair(
         )
         if mask is None:
             out.failed_rule, out.message = "segmentation", f"{side} view: no person found"
+            return out
+        why = implausible(torch.from_numpy(mask)[None, None], segmentation.plausibility)[0]
+        if why:
+            out.failed_rule = "segmentation"
+            out.message = f"{side} view: segmentation implausible: {why}"
             return out
         labelling = decompose_cactus(mask, image, parts)
         out.views[side] = ViewResult(image, mask, labelling)
