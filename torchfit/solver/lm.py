@@ -71,6 +71,7 @@ import torch
 from torchfit.solver.jacobians import JacobianFn, ResidualFn, evaluate_residual, make_jacobian
 from torchfit.solver.options import LMOptions, SolverError
 from torchfit.solver.result import LMIterate, LMResult, LMStatus
+from torchfit.solver.robust import check_loss_units, robust_correct, robust_cost
 
 __all__ = ["levenberg_marquardt"]
 
@@ -104,6 +105,7 @@ def levenberg_marquardt(
     callback: Callback | None = None,
     lower: torch.Tensor | None = None,
     upper: torch.Tensor | None = None,
+    loss_units: torch.Tensor | None = None,
 ) -> LMResult:
     """Solve ``B`` independent nonlinear least-squares problems ``min_x 0.5 |r_b(x)|²``.
 
@@ -129,6 +131,9 @@ def levenberg_marquardt(
             returning ``True`` stops every running problem with status ``STOPPED``.
         lower, upper: optional bounds, ``(P,)`` or ``(B, P)``, ``±inf`` for none. Handled by
             projection (see the module docstring); ``lower == upper`` fixes a parameter.
+        loss_units: optional ``(M,)`` or ``(B, M)`` size of one unit of
+            :attr:`LMOptions.loss_scale` in each residual entry (``inf``: that entry stays least
+            squares whatever :attr:`LMOptions.loss`); see :mod:`torchfit.solver.robust`.
 
     Returns:
         :class:`LMResult` with ``x (B, P)``, ``cost (B,)``, ``status (B,)`` and counters.
@@ -177,8 +182,10 @@ def levenberg_marquardt(
         m = r.shape[1]
         jac_fn = make_jacobian(jacobian, residual_fn, p, m, hi, opts.fold_batch)
 
+        units = check_loss_units(loss_units, r)
+
         def cost_of(res: torch.Tensor) -> torch.Tensor:
-            return 0.5 * (res * res).sum(dim=1)
+            return robust_cost(res, opts.loss, opts.loss_scale, units)
 
         cost = cost_of(r)
         status = torch.zeros(bsz, dtype=torch.long, device=device)
@@ -221,9 +228,12 @@ def levenberg_marquardt(
                 # Rows not updated are computed too (and then not selected): a row of the
                 # batched products depends on that row of J only. The built-in Jacobians are
                 # (B, M, P) views of (B, P, M) storage, the fast layout for these products.
-                jac_t = jac.transpose(1, 2)
-                a_new = jac_t @ jac
-                g_new = (jac_t @ r[:, :, None])[:, :, 0]
+                # Robust loss (torchfit.solver.robust): Triggs' correction of J and r, so that
+                # the normal equations are those of 0.5 sum rho(r²); "linear" leaves them as is.
+                jac_w, r_w = robust_correct(jac, r, opts.loss, opts.loss_scale, units)
+                jac_t = jac_w.transpose(1, 2)
+                a_new = jac_t @ jac_w
+                g_new = (jac_t @ r_w[:, :, None])[:, :, 0]
                 # J is finite where JᵀJ is (a non-finite entry of J makes its diagonal
                 # non-finite); the exact test on J runs only where JᵀJ is not (it may also
                 # overflow for finite J).
