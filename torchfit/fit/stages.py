@@ -18,7 +18,7 @@ from torchfit.fit.problem import SilhouetteFit
 from torchfit.solver import LMOptions, LMResult, levenberg_marquardt
 from torchfit.solver.jacobians import make_jacobian
 
-__all__ = ["StageOptions", "JACOBIANS", "solve_stage"]
+__all__ = ["StageOptions", "JACOBIANS", "solve_stage", "pose_contour_rms", "pose_outliers"]
 
 #: The Jacobians a stage can use: ``"autograd"`` the problem's own (forward-mode pixel
 #: tangents of the contour vertices times reverse-mode local derivatives, per posture);
@@ -124,7 +124,44 @@ def solve_stage(
         options=options,
         jacobian=own_jacobian if jacobian == "autograd" else generic_jacobian,
         callback=callback,
+        loss_units=fit.loss_units(),
     )
     out = full.detach().clone()
     out[:, free] = result.x
     return out, result
+
+
+@torch.no_grad()
+def pose_contour_rms(fit: SilhouetteFit, full: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unweighted contour errors of every posture at ``full`` (B, P).
+
+    Returns:
+        ``(rms, e_m)``, each (B, J) pixels in ``fit.poses`` order: the RMS distance of the
+        person's contour pixels to the model contour (e_P) and e_M, whatever the posture
+        weights.
+    """
+    r = fit.residual(full, fit.select(full))
+    rl = fit.residual_layout
+    w = fit.pose_weights
+    rms = torch.stack([r[:, rl.e_p(j)].norm(dim=1) for j in fit.poses], 1) / w
+    e_m = torch.stack([r[:, rl.e_m(j)] for j in fit.poses], 1) / w
+    return rms, e_m
+
+
+def pose_outliers(rms: torch.Tensor, k: float | None, min_px: float) -> torch.Tensor:
+    """(B, J) bool: postures whose contour RMS disagrees with the subject's others.
+
+    A posture is an outlier when ``rms > median + max(k * 1.4826 * MAD, min_px)`` over the
+    subject's postures (a robust z-score; the floor keeps sub-pixel spreads of a good fit from
+    flagging a posture a pixel off). At most half the postures (rounded down) can be outliers,
+    the worst first, so the rule always leaves a majority. ``k = None`` flags none.
+    """
+    if k is None or rms.shape[1] < 3:
+        return torch.zeros_like(rms, dtype=torch.bool)
+    med = rms.median(dim=1, keepdim=True).values
+    mad = (rms - med).abs().median(dim=1, keepdim=True).values
+    excess = torch.clamp(k * 1.4826 * mad, min=min_px)
+    flagged = rms > med + excess
+    # keep only the worst floor(J / 2)
+    order = rms.argsort(dim=1, descending=True).argsort(dim=1)
+    return flagged & (order < rms.shape[1] // 2)
