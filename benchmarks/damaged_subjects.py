@@ -157,7 +157,8 @@ def main() -> int:
         data.mkdir(parents=True)
         for s in subjects:
             if not args.no_clean:
-                shutil.copytree(args.data / s, data / f"{s}__clean", ignore=shutil.ignore_patterns("stereo"))
+                skip = shutil.ignore_patterns("stereo")
+                shutil.copytree(args.data / s, data / f"{s}__clean", ignore=skip)
             for d in args.damages:
                 damage_subject(args.data / s, data / f"{s}__{d}", d)
     cmd = [sys.executable, str(ROOT / "tools" / "benchmark.py"), "--config", args.config]

@@ -38,6 +38,10 @@ class StageOptions:
         joints: optimise every posture's free joint angles.
         root: optimise every posture's floor translation and rotation.
         max_iter: the stage's own iteration limit (None: the solver's).
+        loss: the stage's own robust loss (:attr:`torchfit.solver.LMOptions.loss`; None: the
+            solver's). A robust loss holds back the pull of contour pixels far from the model,
+            which is what a first stage from the template needs to bring a limb that starts
+            far from its place, so the shipped schedules keep their first stage ``linear``.
     """
 
     name: str = "all"
@@ -45,6 +49,7 @@ class StageOptions:
     joints: bool = True
     root: bool = True
     max_iter: int | None = None
+    loss: Literal["linear", "huber", "cauchy"] | None = None
 
 
 def solve_stage(

@@ -142,6 +142,8 @@ def run_stages(
     while si < len(schedule):
         stage = schedule[si]
         options = solver.lm_options(stage.max_iter or solver.max_iter)
+        if stage.loss is not None:
+            options = replace(options, loss=stage.loss)
         tag = f"stage{si + 1}_{stage.name}"
         x, per = _run_stage(fit, x, config, stage, options, names, tag, tb, progress)
         for i, (code, cost, iters, message) in enumerate(per):
