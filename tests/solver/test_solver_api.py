@@ -226,6 +226,9 @@ def test_solver_config_mirrors_lm_options():
     cfg = {f.name: getattr(SolverConfig(), f.name) for f in dataclasses.fields(SolverConfig)}
     opts = {f.name: getattr(LMOptions(), f.name) for f in dataclasses.fields(LMOptions)}
     assert cfg.pop("jacobian") == "autograd"
+    # the fit's own defaults: Huber at 3 px (the solver's stays least squares)
+    assert (cfg.pop("loss"), cfg.pop("loss_scale")) == ("huber", 3.0)
+    assert (opts.pop("loss"), opts.pop("loss_scale")) == ("linear", 1.0)
     assert cfg == opts
     assert LMOptions(**cfg) == LMOptions()
     # The pipeline's conversion carries every field, and a stage's own limit.

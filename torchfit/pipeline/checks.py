@@ -24,7 +24,7 @@ PROPORTIONS_CSV = Path(__file__).with_name("proportions.csv")
 
 #: Relative widening of each ANSUR II range on both sides (definitions differ; see above).
 MARGINS: dict[str, float] = {
-    "arm_span_m": 0.08,
+    "arm_span_m": 0.03,
     "upper_arm_m": 0.25,
     "forearm_m": 0.2,
     "lower_leg_m": 0.2,
