@@ -232,9 +232,17 @@ def test_solver_config_mirrors_lm_options():
     assert cfg == opts
     assert LMOptions(**cfg) == LMOptions()
     # The pipeline's conversion carries every field, and a stage's own limit.
-    custom = SolverConfig(ftol=1e-3, max_bad_steps=3, geodesic_acceleration=True, max_nfev=50)
+    custom = SolverConfig(
+        ftol=1e-3, max_bad_steps=3, geodesic_acceleration=True, max_nfev=50, loss="cauchy"
+    )
     assert custom.lm_options(7) == LMOptions(
-        max_iter=7, ftol=1e-3, max_bad_steps=3, geodesic_acceleration=True, max_nfev=50
+        max_iter=7,
+        ftol=1e-3,
+        max_bad_steps=3,
+        geodesic_acceleration=True,
+        max_nfev=50,
+        loss="cauchy",
+        loss_scale=3.0,
     )
 
 

@@ -1,5 +1,5 @@
 """What the judge checks a fitted body against, without the truth: human proportions (from
-ANSUR II) and scales that ended on their bounds.
+ANSUR II) and scales that ended on their upper bound.
 
 The proportion table ``proportions.csv`` beside this module is derived by
 ``tools/make_proportions.py``: per measurement, the 0.5th and 99.5th percentiles of its ratio
@@ -78,10 +78,15 @@ def proportion_flags(
 def bound_flags(
     scales: Sequence[float], names: Sequence[str], bounds: tuple[float, float], tol: float = 0.01
 ) -> list[str]:
-    """Messages for the scale groups within ``tol`` (relative) of a bound of ``bounds``."""
-    lo, hi = bounds
-    flags = []
-    for name, s in zip(names, scales, strict=True):
-        if s <= lo * (1 + tol) or s >= hi * (1 - tol):
-            flags.append(f"scale {name} = {s:.2f} at its bound ({lo}, {hi})")
-    return flags
+    """Messages for the scale groups within ``tol`` (relative) of the upper bound of ``bounds``.
+
+    Only the upper bound: a segment stretched to the limit is what a drag does, while the
+    lower bound is reached on clean fits by widths the views do not constrain (the clavicle's
+    and the foot's x scale on the development set).
+    """
+    hi = bounds[1]
+    return [
+        f"scale {name} = {s:.2f} at its upper bound {hi}"
+        for name, s in zip(names, scales, strict=True)
+        if s >= hi * (1 - tol)
+    ]

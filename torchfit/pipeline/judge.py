@@ -27,7 +27,7 @@ def judge(
         ``FAILED`` when a stage failed or the final cost is not finite; ``POOR_FIT`` when the
         model contour is on average further than ``max_contour_rms_px`` from the person's in
         some posture or when the stage records carry ``flags`` (a posture that disagreed
-        with the others and was down-weighted, proportions far from human, scales on their
+        with the others and was down-weighted, proportions far from human, scales on their upper
         bounds; see :mod:`torchfit.pipeline.stages`); ``OK`` otherwise (the last stage's
         solver message).
     """

@@ -5,7 +5,7 @@ After the last stage the postures of each subject are compared
 others is down-weighted (``fit.pose_outlier_weight``) and the last stage runs once more
 (``<name>_reweighted``) for the batch. At the end, the down-weighted
 postures, implausible body proportions (:mod:`torchfit.pipeline.checks`) and scales on their
-bounds become the ``flags`` of the subject's last stage record, which the judge reads.
+upper bound become the ``flags`` of the subject's last stage record, which the judge reads.
 """
 
 from __future__ import annotations
