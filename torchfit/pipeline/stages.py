@@ -154,7 +154,7 @@ def run_stages(
         if last and config.fit.method != "minpack_rendered":
             # postures are compared once the whole schedule has run (an earlier stage has not
             # fitted every segment yet); a new outlier gets the last stage once more
-            new = _reweight(fit, x, config, downweighted)
+            new = _reweight(fit, x, config, downweighted, names)
             if new and not stage.name.endswith("_reweighted"):
                 schedule.append(replace(stage, name=f"{stage.name}_reweighted"))
         si += 1
@@ -203,7 +203,11 @@ def _run_stage(fit, x, config, stage, options, names, tag, tb, progress):
 
 
 def _reweight(
-    fit: SilhouetteFit, x: torch.Tensor, config: Config, downweighted: list[dict[int, str]]
+    fit: SilhouetteFit,
+    x: torch.Tensor,
+    config: Config,
+    downweighted: list[dict[int, str]],
+    names: list[str],
 ) -> bool:
     """Down-weight the postures that now disagree with the others; True if any is new."""
     opts = config.fit
@@ -220,7 +224,7 @@ def _reweight(
         if float(fit.pose_weights[i, k]) == 1.0:
             fit.pose_weights[i, k] = opts.pose_outlier_weight
             new = True
-            log.info("subject %d: %s", i, downweighted[i][j])
+            log.info("%s: %s", names[i], downweighted[i][j])
     return new
 
 
