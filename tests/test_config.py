@@ -106,7 +106,8 @@ def test_sections_are_the_numeric_options(tmp_path):
     assert isinstance(cfg.segmentation, SegmentationOptions)
     assert isinstance(cfg.parts, PartsOptions)
     assert cfg.solver.jacobian == "forward"
-    assert cfg.solver.lm_options(4) == LMOptions(max_iter=4)  # every other field as LMOptions'
+    # every other field as LMOptions', but the fit's robust loss (Huber at 3 px)
+    assert cfg.solver.lm_options(4) == LMOptions(max_iter=4, loss="huber", loss_scale=3.0)
     assert type(cfg.solver.lm_options()) is LMOptions and cfg.solver.lm_options().max_iter == 9
 
 

@@ -226,12 +226,23 @@ def test_solver_config_mirrors_lm_options():
     cfg = {f.name: getattr(SolverConfig(), f.name) for f in dataclasses.fields(SolverConfig)}
     opts = {f.name: getattr(LMOptions(), f.name) for f in dataclasses.fields(LMOptions)}
     assert cfg.pop("jacobian") == "autograd"
+    # the fit's own defaults: Huber at 3 px (the solver's stays least squares)
+    assert (cfg.pop("loss"), cfg.pop("loss_scale")) == ("huber", 3.0)
+    assert (opts.pop("loss"), opts.pop("loss_scale")) == ("linear", 1.0)
     assert cfg == opts
     assert LMOptions(**cfg) == LMOptions()
     # The pipeline's conversion carries every field, and a stage's own limit.
-    custom = SolverConfig(ftol=1e-3, max_bad_steps=3, geodesic_acceleration=True, max_nfev=50)
+    custom = SolverConfig(
+        ftol=1e-3, max_bad_steps=3, geodesic_acceleration=True, max_nfev=50, loss="cauchy"
+    )
     assert custom.lm_options(7) == LMOptions(
-        max_iter=7, ftol=1e-3, max_bad_steps=3, geodesic_acceleration=True, max_nfev=50
+        max_iter=7,
+        ftol=1e-3,
+        max_bad_steps=3,
+        geodesic_acceleration=True,
+        max_nfev=50,
+        loss="cauchy",
+        loss_scale=3.0,
     )
 
 

@@ -105,9 +105,15 @@ class SolverConfig(LMOptions):
             contour), or ``forward``, ``reverse``, ``numeric``: the solver's generic
             forward-mode, reverse-mode or forward-difference Jacobian of the whole residual
             (slower; for checks). See :data:`torchfit.fit.JACOBIANS`.
+        loss, loss_scale: as :class:`~torchfit.solver.LMOptions`, with the fit's defaults:
+            Huber at 3 px on the contour distances e_P (e_M and the barriers stay least
+            squares; a stage may set its own ``loss``). Chosen on the development set
+            (benchmarks/RESULTS.md, "Robust fit").
     """
 
     jacobian: Literal["autograd", "forward", "reverse", "numeric"] = "autograd"
+    loss: Literal["linear", "huber", "cauchy"] = "huber"
+    loss_scale: float = 3.0
 
     def lm_options(self, max_iter: int | None = None) -> LMOptions:
         """These options as :class:`LMOptions` (``max_iter`` overrides, for a stage's own
@@ -120,7 +126,9 @@ class SolverConfig(LMOptions):
 
 def _default_stages() -> tuple[StageOptions, ...]:
     return (
-        StageOptions(name="legs_upper_body", scales=("legs", "upper_body"), joints=True),
+        StageOptions(
+            name="legs_upper_body", scales=("legs", "upper_body"), joints=True, loss="linear"
+        ),
         StageOptions(name="all", scales=("all",), joints=True),
     )
 

@@ -59,6 +59,13 @@ class FitOptions:
             ``shadow_margin_px`` of them, no e_M from model contour points on them (has an
             effect only where the segmentation ran its shadow test).
         shadow_margin_px: see ``ignore_shadow``.
+        pose_outlier_k: a posture whose contour RMS (e_P) exceeds the median of the subject's
+            postures by more than ``pose_outlier_k`` robust standard deviations
+            (1.4826 MAD, at least ``pose_outlier_min_px``) disagrees with the others: the
+            pipeline down-weights it, runs the last stage again and reports it. ``None``: never.
+        pose_outlier_min_px: the smallest excess over the median that makes an outlier, pixels.
+        pose_outlier_weight: the weight of a down-weighted posture's residuals (its cost
+            counts ``pose_outlier_weight²``).
     """
 
     poses: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
@@ -72,11 +79,19 @@ class FitOptions:
     contour_stride: int = 1
     ignore_shadow: bool = True
     shadow_margin_px: int = 2
+    pose_outlier_k: float | None = 5.0
+    pose_outlier_min_px: float = 3.0
+    pose_outlier_weight: float = 0.1
 
     def __post_init__(self) -> None:
         poses = list(self.poses)
         if not poses or len(set(poses)) != len(poses) or not set(poses) <= set(range(1, 7)):
             raise ConfigError(f"fit.poses: expected distinct postures from 1..6, got {poses}")
+        if not 0 < self.pose_outlier_weight <= 1:
+            raise ConfigError(
+                f"fit.pose_outlier_weight: expected a number in (0, 1], got "
+                f"{self.pose_outlier_weight!r}"
+            )
 
 
 class SilhouetteFit:
@@ -122,10 +137,14 @@ class SilhouetteFit:
         self.poser = Poser(model, layout, camera_centre(self.camera.R, self.camera.t))
         self.lower = layout.lower(**kw)
         self.upper = layout.upper(**kw)
+        #: (B, J) weight of each posture's residuals (e_P and e_M), 1 unless down-weighted.
+        self.pose_weights = torch.ones(self.batch, len(self.poses), **kw)
 
     def subset(self, index: list[int]) -> SilhouetteFit:
         """The same problem for a subset of the subjects (same layout and residual width)."""
-        return SilhouetteFit(self.model, self.person.subset(index), self.options, self.scale_bounds)
+        out = SilhouetteFit(self.model, self.person.subset(index), self.options, self.scale_bounds)
+        out.pose_weights = self.pose_weights[index].clone()
+        return out
 
     # ------------------------------------------------------------------------------------
     @property
@@ -284,7 +303,22 @@ class SilhouetteFit:
         e_p, e_m = self._pose_terms(
             k, rows, ends, selection, self._endpoint_pixels(pixels, lookup, ends)
         )
-        return torch.cat([e_p, e_m[:, None]], dim=1)
+        return torch.cat([e_p, e_m[:, None]], dim=1) * self.pose_weights[rows, k, None]
+
+    def loss_units(self) -> torch.Tensor:
+        """(B, M) size of one pixel in each residual entry, for the solver's robust loss.
+
+        An e_P entry is a distance in pixels divided by ``sqrt(|C_P|)`` and times its
+        posture's weight; e_M and e_B stay least squares (``inf``).
+        """
+        parts = []
+        for k, valid in enumerate(self.person.valid):
+            count = valid.sum(dim=1, keepdim=True).clamp_min(1).to(self.pose_weights)
+            unit = (self.pose_weights[:, k, None] / count.sqrt()).expand(-1, valid.shape[1])
+            inf = torch.full((self.batch, 1), torch.inf, **self.kw)
+            parts.append(torch.cat([unit, inf], 1))
+        parts.append(torch.full((self.batch, self.num_params), torch.inf, **self.kw))
+        return torch.cat(parts, 1)
 
     def residual_mask(self) -> torch.Tensor:
         """(B, M) validity of the residual entries (padding of e_P is False)."""
@@ -400,8 +434,9 @@ class SilhouetteFit:
             block_p = _dot2(local["pa"], t_of["pa"]) + _dot2(local["pb"], t_of["pb"])
             per_point = _dot2(local["ma"], t_of["ma"]) + _dot2(local["mb"], t_of["mb"])
             block_m = padded_row_sum(per_point.transpose(1, 2))
-            jac[:, rl.e_p(j), cols] = block_p
-            jac[:, rl.e_m(j), cols] = block_m
+            weight = self.pose_weights[rows][:, k, None]
+            jac[:, rl.e_p(j), cols] = block_p * weight[:, :, None]
+            jac[:, rl.e_m(j), cols] = block_m * weight
         # barrier: elementwise, derivative weight * (-1 below, +1 above, 0 inside)
         x = full[:, free]
         lo, hi = self.lower[free], self.upper[free]

@@ -19,7 +19,7 @@ from torchfit.fit.problem import SilhouetteFit
 from torchfit.solver import LMOptions, LMResult, levenberg_marquardt
 from torchfit.solver.jacobians import make_jacobian
 
-__all__ = ["StageOptions", "JACOBIANS", "solve_stage"]
+__all__ = ["StageOptions", "JACOBIANS", "solve_stage", "pose_contour_rms", "pose_outliers"]
 
 #: The Jacobians a stage can use: ``"autograd"`` the problem's own (forward-mode pixel
 #: tangents of the contour vertices times reverse-mode local derivatives, per posture);
@@ -39,6 +39,10 @@ class StageOptions:
         joints: optimise every posture's free joint angles.
         root: optimise every posture's floor translation and rotation.
         max_iter: the stage's own iteration limit (None: the solver's).
+        loss: the stage's own robust loss (:attr:`torchfit.solver.LMOptions.loss`; None: the
+            solver's). A robust loss holds back the pull of contour pixels far from the model,
+            which is what a first stage from the template needs to bring a limb that starts
+            far from its place, so the shipped schedules keep their first stage ``linear``.
     """
 
     name: str = "all"
@@ -46,6 +50,7 @@ class StageOptions:
     joints: bool = True
     root: bool = True
     max_iter: int | None = None
+    loss: Literal["linear", "huber", "cauchy"] | None = None
 
 
 def solve_stage(
@@ -117,6 +122,7 @@ def solve_stage(
         jacobian=own_jacobian if jacobian == "autograd" else generic_jacobian,
         callback=callback,
         indexed=True,
+        loss_units=fit.loss_units(),
     )
     out = full.detach().clone()
     out[:, free] = result.x
@@ -158,3 +164,39 @@ class _Selections:
             first = torch.stack([(at == i).nonzero()[0, 0] for i in subjects])
             self.refresh(subjects.to(rows.device), full[first.to(full.device)])
         return {j: sel.take(at) for j, sel in self.chosen.items()}
+
+
+@torch.no_grad()
+def pose_contour_rms(fit: SilhouetteFit, full: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unweighted contour errors of every posture at ``full`` (B, P).
+
+    Returns:
+        ``(rms, e_m)``, each (B, J) pixels in ``fit.poses`` order: the RMS distance of the
+        person's contour pixels to the model contour (e_P) and e_M, whatever the posture
+        weights.
+    """
+    r = fit.residual(full, fit.select(full))
+    rl = fit.residual_layout
+    w = fit.pose_weights
+    rms = torch.stack([r[:, rl.e_p(j)].norm(dim=1) for j in fit.poses], 1) / w
+    e_m = torch.stack([r[:, rl.e_m(j)] for j in fit.poses], 1) / w
+    return rms, e_m
+
+
+def pose_outliers(rms: torch.Tensor, k: float | None, min_px: float) -> torch.Tensor:
+    """(B, J) bool: postures whose contour RMS disagrees with the subject's others.
+
+    A posture is an outlier when ``rms > median + max(k * 1.4826 * MAD, min_px)`` over the
+    subject's postures (a robust z-score; the floor keeps sub-pixel spreads of a good fit from
+    flagging a posture a pixel off). At most half the postures (rounded down) can be outliers,
+    the worst first, so the rule always leaves a majority. ``k = None`` flags none.
+    """
+    if k is None or rms.shape[1] < 3:
+        return torch.zeros_like(rms, dtype=torch.bool)
+    med = rms.median(dim=1, keepdim=True).values
+    mad = (rms - med).abs().median(dim=1, keepdim=True).values
+    excess = torch.clamp(k * 1.4826 * mad, min=min_px)
+    flagged = rms > med + excess
+    # keep only the worst floor(J / 2)
+    order = rms.argsort(dim=1, descending=True).argsort(dim=1)
+    return flagged & (order < rms.shape[1] // 2)

@@ -26,7 +26,10 @@ def judge(
     Returns:
         ``FAILED`` when a stage failed or the final cost is not finite; ``POOR_FIT`` when the
         model contour is on average further than ``max_contour_rms_px`` from the person's in
-        some posture; ``OK`` otherwise (the last stage's solver message).
+        some posture or when the stage records carry ``flags`` (a posture that disagreed
+        with the others and was down-weighted, proportions far from human, scales on their upper
+        bounds; see :mod:`torchfit.pipeline.stages`); ``OK`` otherwise (the last stage's
+        solver message).
     """
     failed = any(s.status in FAILED_SOLVER_STATUS for s in stages) or not math.isfinite(
         stages[-1].cost
@@ -40,4 +43,7 @@ def judge(
             f"model contour {quality[worst]['e_M_px']:.1f} px (RMS) from the "
             f"person's in {worst}: check the segmentation in the overlays"
         )
+    flags = [f for s in stages for f in s.flags]
+    if flags:
+        return SubjectStatus.POOR_FIT, "; ".join(flags)
     return SubjectStatus.OK, message

@@ -1,16 +1,26 @@
-"""Run the configured stage schedule on a batch, and the automatic start before it."""
+"""Run the configured stage schedule on a batch, and the automatic start before it.
+
+After the last stage the postures of each subject are compared
+(:func:`torchfit.fit.stages.pose_outliers` on their contour RMS): one that disagrees with the
+others is down-weighted (``fit.pose_outlier_weight``) and the last stage runs once more
+(``<name>_reweighted``) for the batch. At the end, the down-weighted
+postures, implausible body proportions (:mod:`torchfit.pipeline.checks`) and scales on their
+upper bound become the ``flags`` of the subject's last stage record, which the judge reads.
+"""
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 
 import torch
 
+from torchfit.body.measure import measure_model
 from torchfit.config.schema import Config
 from torchfit.fit.problem import SilhouetteFit
-from torchfit.fit.stages import solve_stage
+from torchfit.fit.stages import pose_contour_rms, pose_outliers, solve_stage
+from torchfit.pipeline.checks import bound_flags, proportion_flags
 from torchfit.solver import LMStatus
 
 __all__ = ["StageRecord", "start_params", "run_stages", "FAILED_SOLVER_STATUS"]
@@ -23,17 +33,25 @@ FAILED_SOLVER_STATUS = frozenset({"NONFINITE", "LINALG"})
 
 @dataclass
 class StageRecord:
-    """One subject's outcome of one stage (a row of ``params.json["stages"]``)."""
+    """One subject's outcome of one stage (a row of ``params.json["stages"]``).
+
+    ``flags`` (last stage only): what makes the fit doubtful though the solver converged
+    (down-weighted postures, proportions, scales on bounds); written only when not empty.
+    """
 
     stage: str
     status: str
     message: str
     cost: float
     iterations: int
+    flags: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """The params.json form."""
-        return asdict(self)
+        out = asdict(self)
+        if not self.flags:
+            del out["flags"]
+        return out
 
 
 def _status_name(code: int) -> str:
@@ -117,44 +135,113 @@ def run_stages(
     """
     solver = config.solver
     records: list[list[StageRecord]] = [[] for _ in names]
-    for si, stage in enumerate(config.fit.stages):
+    fit.pose_weights.fill_(1.0)
+    downweighted: list[dict[int, str]] = [{} for _ in names]
+    schedule = list(config.fit.stages)
+    si = 0
+    while si < len(schedule):
+        stage = schedule[si]
         options = solver.lm_options(stage.max_iter or solver.max_iter)
+        if stage.loss is not None:
+            options = replace(options, loss=stage.loss)
         tag = f"stage{si + 1}_{stage.name}"
-        if config.fit.method == "minpack_rendered":
-            from torchfit.fit.baseline import minpack_stage
-
-            x, results = minpack_stage(fit, x, stage, options)
-            per = [
-                (int(r.status[0]), float(r.cost[0]), int(r.nfev[0]), r.message[0]) for r in results
-            ]
-        else:
-            callbacks: list[Callable] = []
-            if tb is not None:
-                from torchfit.pipeline.tensorboard import TensorBoardCallback
-
-                callbacks.append(TensorBoardCallback(tb.writer, tag, names, log_every=1))
-            bar = None
-            if progress is not None:
-                bar = progress(f"{tag} ({len(names)} subjects)", options.max_iter)
-                callbacks.append(_IterationProgress(bar))
-            try:
-                x, res = solve_stage(
-                    fit,
-                    x,
-                    stage,
-                    options,
-                    solver.jacobian,
-                    callback=_Callbacks(callbacks) if callbacks else None,
-                )
-            finally:
-                if bar is not None:
-                    bar.close()
-            per = [
-                (int(res.status[i]), float(res.cost[i]), int(res.n_iter[i]), res.message[i])
-                for i in range(len(names))
-            ]
+        x, per = _run_stage(fit, x, config, stage, options, names, tag, tb, progress)
         for i, (code, cost, iters, message) in enumerate(per):
             records[i].append(StageRecord(stage.name, _status_name(code), message, cost, iters))
         if any(_status_name(p[0]) in FAILED_SOLVER_STATUS for p in per):
             log.warning("%s: %s", tag, [p[3] for p in per])
+        last = si == len(schedule) - 1
+        if last and config.fit.method != "minpack_rendered":
+            # postures are compared once the whole schedule has run (an earlier stage has not
+            # fitted every segment yet); a new outlier gets the last stage once more
+            new = _reweight(fit, x, config, downweighted, names)
+            if new and not stage.name.endswith("_reweighted"):
+                schedule.append(replace(stage, name=f"{stage.name}_reweighted"))
+        si += 1
+    flags = _final_flags(fit, x, config, downweighted)
+    for i, f in enumerate(flags):
+        records[i][-1].flags = f
+    fit.pose_weights.fill_(1.0)
     return x, records
+
+
+def _run_stage(fit, x, config, stage, options, names, tag, tb, progress):
+    """One stage for the batch: (B, P) parameters and per subject (status, cost, iterations,
+    message)."""
+    if config.fit.method == "minpack_rendered":
+        from torchfit.fit.baseline import minpack_stage
+
+        x, results = minpack_stage(fit, x, stage, options)
+        return x, [
+            (int(r.status[0]), float(r.cost[0]), int(r.nfev[0]), r.message[0]) for r in results
+        ]
+    callbacks: list[Callable] = []
+    if tb is not None:
+        from torchfit.pipeline.tensorboard import TensorBoardCallback
+
+        callbacks.append(TensorBoardCallback(tb.writer, tag, names, log_every=1))
+    bar = None
+    if progress is not None:
+        bar = progress(f"{tag} ({len(names)} subjects)", options.max_iter)
+        callbacks.append(_IterationProgress(bar))
+    try:
+        x, res = solve_stage(
+            fit,
+            x,
+            stage,
+            options,
+            config.solver.jacobian,
+            callback=_Callbacks(callbacks) if callbacks else None,
+        )
+    finally:
+        if bar is not None:
+            bar.close()
+    return x, [
+        (int(res.status[i]), float(res.cost[i]), int(res.n_iter[i]), res.message[i])
+        for i in range(len(names))
+    ]
+
+
+def _reweight(
+    fit: SilhouetteFit,
+    x: torch.Tensor,
+    config: Config,
+    downweighted: list[dict[int, str]],
+    names: list[str],
+) -> bool:
+    """Down-weight the postures that now disagree with the others; True if any is new."""
+    opts = config.fit
+    rms, _ = pose_contour_rms(fit, x)
+    outliers = pose_outliers(rms, opts.pose_outlier_k, opts.pose_outlier_min_px)
+    med = rms.median(dim=1).values
+    new = False
+    for i, k in outliers.nonzero().tolist():
+        j = fit.poses[k]
+        downweighted[i][j] = (
+            f"pose{j} down-weighted: contour rms {float(rms[i, k]):.1f} px "
+            f"vs median {float(med[i]):.1f}"
+        )
+        if float(fit.pose_weights[i, k]) == 1.0:
+            fit.pose_weights[i, k] = opts.pose_outlier_weight
+            new = True
+            log.info("%s: %s", names[i], downweighted[i][j])
+    return new
+
+
+def _final_flags(
+    fit: SilhouetteFit, x: torch.Tensor, config: Config, downweighted: list[dict[int, str]]
+) -> list[list[str]]:
+    """Per subject, what makes its fit doubtful (see the module docstring)."""
+    with torch.no_grad():
+        scales = fit.model.expand_scales(fit.layout.group_scales(x))
+        measures = measure_model(fit.model, scales)
+    cols = range(fit.layout.num_scale_params)
+    free = [c for c in cols if float(fit.lower[c]) < float(fit.upper[c])]
+    names = [fit.layout.names[c].removeprefix("scale:") for c in free]
+    out = []
+    for i in range(x.shape[0]):
+        flags = [downweighted[i][j] for j in sorted(downweighted[i])]
+        flags += proportion_flags({k: float(v[i]) for k, v in measures.items()})
+        flags += bound_flags([float(x[i, c]) for c in free], names, fit.scale_bounds)
+        out.append(flags)
+    return out

@@ -8,9 +8,10 @@ from collections.abc import Callable
 import torch
 
 from torchfit.solver.jacobians import ResidualFn, evaluate_residual
-from torchfit.solver.normal import half_squared_norm, normal_equations, valid_entries
+from torchfit.solver.normal import normal_equations, valid_entries
 from torchfit.solver.options import LMOptions
 from torchfit.solver.result import LMStatus
+from torchfit.solver.robust import problem_cost, robust_correct
 from torchfit.solver.steps import frozen_variables, geodesic_acceleration
 
 __all__ = ["update_jacobian", "lm_step", "project"]
@@ -37,6 +38,7 @@ def update_jacobian(s: dict, jacobian_for: Callable, opts: LMOptions) -> None:
     """
     x, r, mask, cost, status = s["x"], s["r"], s.get("mask"), s["cost"], s["status"]
     lo, hi, fixed = s.get("lo"), s.get("hi"), s["fixed"]
+    units, loss, scale = s.get("units"), opts.loss, opts.loss_scale
     has_bounds = lo is not None or hi is not None
     zero = torch.zeros((), dtype=x.dtype, device=x.device)
     valid = valid_entries(mask, x.shape[0])
@@ -49,15 +51,19 @@ def update_jacobian(s: dict, jacobian_for: Callable, opts: LMOptions) -> None:
         every = rows.numel() == x.shape[0]
         pick = (lambda v: v) if every else (lambda v: v[rows])  # noqa: E731
         mask_u = None if mask is None else pick(mask)
+        units_u = None if units is None else pick(units)
         valid_u = valid if every else [valid[i] for i in rows.tolist()]
         jac = jacobian_for(rows)(pick(x), pick(r), mask_u)
         r_u = pick(r)
         if isinstance(jac, tuple):  # a user Jacobian that also refreshes r at x
             jac, r_u = jac
             r = r.index_copy(0, rows, r_u)
-            cost = cost.index_copy(0, rows, half_squared_norm(r_u, valid_u))
+            cost = cost.index_copy(0, rows, problem_cost(r_u, valid_u, loss, scale, units_u))
         s["njev"] = s["njev"].index_add(0, rows, torch.ones_like(rows))
-        a_new, g_new = normal_equations(jac, r_u, valid_u)
+        # Robust loss (torchfit.solver.robust): Triggs' correction of J and r, so that the
+        # normal equations are those of 0.5 sum rho(r²); "linear" leaves them as they are.
+        jac_w, r_w = robust_correct(jac, r_u, loss, scale, units_u)
+        a_new, g_new = normal_equations(jac_w, r_w, valid_u)
         # J is finite where JᵀJ is (a non-finite entry of J makes its diagonal non-finite);
         # the exact test on J runs only where JᵀJ is not (it may also overflow for finite J).
         jac_ok = torch.isfinite(a_new.sum(dim=(1, 2)))
@@ -150,7 +156,8 @@ def lm_step(s: dict, fn: ResidualFn, opts: LMOptions) -> tuple[torch.Tensor, tor
     # convergence test, and not a bad step (it only raises the damping).
     tried = solved if too_curved is None else solved & ~too_curved
     nfev = nfev + tried.long()
-    cost_try = half_squared_norm(r_try, valid_entries(mask_try, x.shape[0]))
+    valid_try = valid_entries(mask_try, x.shape[0])
+    cost_try = problem_cost(r_try, valid_try, opts.loss, opts.loss_scale, s.get("units"))
     finite = tried & torch.isfinite(cost_try)
     # The model's prediction is for the step taken or, with the acceleration, for the
     # velocity (where the bounds did not clip the step).

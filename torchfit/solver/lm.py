@@ -84,9 +84,10 @@ from torchfit.solver.jacobians import (
     make_jacobian,
     rows_caller,
 )
-from torchfit.solver.normal import half_squared_norm, valid_entries
+from torchfit.solver.normal import valid_entries
 from torchfit.solver.options import LMOptions, SolverError
 from torchfit.solver.result import LMIterate, LMResult, LMStatus
+from torchfit.solver.robust import check_loss_units, problem_cost
 
 __all__ = ["levenberg_marquardt"]
 
@@ -115,6 +116,7 @@ def levenberg_marquardt(
     lower: torch.Tensor | None = None,
     upper: torch.Tensor | None = None,
     indexed: bool = False,
+    loss_units: torch.Tensor | None = None,
 ) -> LMResult:
     """Solve ``B`` independent nonlinear least-squares problems ``min_x 0.5 |r_b(x)|²``.
 
@@ -148,6 +150,9 @@ def levenberg_marquardt(
             of every row, and is evaluated for the running problems only. Without it the
             whole batch is evaluated each time (finished problems at their final ``x``, their
             rows discarded); results are the same, only the time differs.
+        loss_units: optional ``(M,)`` or ``(B, M)`` size of one unit of
+            :attr:`LMOptions.loss_scale` in each residual entry (``inf``: that entry stays least
+            squares whatever :attr:`LMOptions.loss`); see :mod:`torchfit.solver.robust`.
 
     Returns:
         :class:`LMResult` with ``x (B, P)``, ``cost (B,)``, ``status (B,)`` and counters.
@@ -186,7 +191,8 @@ def levenberg_marquardt(
             raise SolverError(f"residual_fn: expected dtype {dtype} (that of x0), got {r.dtype}")
         m = r.shape[1]
         make_jacobian(jacobian, residual_fn, p, m, hi, opts.fold_batch)  # checks the argument
-        cost = half_squared_norm(r, valid_entries(mask, bsz))
+        units = check_loss_units(loss_units, r)
+        cost = problem_cost(r, valid_entries(mask, bsz), opts.loss, opts.loss_scale, units)
         zeros = torch.zeros(bsz, dtype=dtype, device=device)
         counter = torch.zeros(bsz, dtype=torch.long, device=device)
         state = {
@@ -210,7 +216,7 @@ def levenberg_marquardt(
             # free parameters per problem: what a Jacobian costs in evaluations for max_nfev
             "n_free": (~fixed).sum(dim=1),
         }
-        optional = {"mask": mask, "lo": lo, "hi": hi}
+        optional = {"mask": mask, "lo": lo, "hi": hi, "units": units}
         state.update({k: v for k, v in optional.items() if v is not None})
         if accel:  # the Jacobian of the last update, for J v in the geodesic acceleration
             state["jac"] = torch.zeros(bsz, m, p, dtype=dtype, device=device)

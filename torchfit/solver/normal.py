@@ -20,6 +20,7 @@ import torch
 __all__ = [
     "valid_entries",
     "half_squared_norm",
+    "half_sum",
     "normal_equations",
     "jacobian_times",
     "jacobian_t_times",
@@ -56,6 +57,19 @@ def half_squared_norm(r: torch.Tensor, valid: list[torch.Tensor | None]) -> torc
     for b in range(r.shape[0]):
         own = _own(r[b], valid[b], 0)
         out[b] = 0.5 * torch.dot(own, own)
+    return out
+
+
+def half_sum(values: torch.Tensor, valid: list[torch.Tensor | None]) -> torch.Tensor:
+    """``(B,)`` ``0.5 * sum(values_b)`` over each problem's valid entries (a robust cost).
+
+    Args:
+        values: ``(B, M)`` per-entry costs.
+        valid: from :func:`valid_entries`.
+    """
+    out = torch.empty(values.shape[0], dtype=values.dtype, device=values.device)
+    for b in range(values.shape[0]):
+        out[b] = 0.5 * _own(values[b], valid[b], 0).sum()
     return out
 
 

@@ -10,10 +10,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 from torchfit.errors import TorchfitError
 
-__all__ = ["LMOptions", "SolverError"]
+__all__ = ["LMOptions", "SolverError", "LOSSES"]
+
+#: The robust losses of :mod:`torchfit.solver.robust`.
+LOSSES: tuple[str, ...] = ("linear", "huber", "cauchy")
 
 
 class SolverError(TorchfitError):
@@ -59,6 +63,12 @@ class LMOptions:
             acceleration probes) plus, per Jacobian, one per free parameter (a parameter whose
             bounds are not equal), which is what a forward-difference Jacobian costs. Status
             ``MAX_ITER`` (MINPACK's info 5) when reached; checked after each iteration.
+        loss: ``"linear"`` (least squares), ``"huber"`` or ``"cauchy"``: the robust loss of
+            each residual entry, applied inside the normal equations by Triggs' correction
+            (:mod:`torchfit.solver.robust`); the cost is then ``½ Σ ρ(r²)``.
+        loss_scale: the loss's scale ``a``: where ``|r|`` exceeds it, Huber grows linearly and
+            Cauchy logarithmically. In the residual's own units, or in those the caller gives
+            per entry (``loss_units`` of :func:`~torchfit.solver.levenberg_marquardt`).
     """
 
     max_iter: int = 100
@@ -75,6 +85,8 @@ class LMOptions:
     geodesic_acceleration: bool = False
     accel_ratio: float = 0.75
     max_nfev: int | None = None
+    loss: Literal["linear", "huber", "cauchy"] = "linear"
+    loss_scale: float = 1.0
 
     def __post_init__(self) -> None:
         if isinstance(self.max_iter, bool) or not isinstance(self.max_iter, int):
@@ -133,4 +145,15 @@ class LMOptions:
         ):
             raise SolverError(
                 f"LMOptions.max_nfev: expected None or an int >= 1, got {self.max_nfev!r}"
+            )
+        if self.loss not in LOSSES:
+            raise SolverError(f"LMOptions.loss: expected one of {list(LOSSES)}, got {self.loss!r}")
+        if (
+            isinstance(self.loss_scale, bool)
+            or not isinstance(self.loss_scale, (int, float))
+            or not math.isfinite(self.loss_scale)
+            or self.loss_scale <= 0
+        ):
+            raise SolverError(
+                f"LMOptions.loss_scale: expected a finite number > 0, got {self.loss_scale!r}"
             )
