@@ -5,7 +5,8 @@
 
 Prints machine and versions, then
 
-1. frames per second at 720x576 for the whole chain, batched: Mahalanobis test (HSL),
+1. frames per second at 720x576 for the whole chain, batched: Mahalanobis test (HSL), the
+   shadow test of the default options (attenuation, chromaticity, texture; its own column),
    clean-up (opening, largest region, closing, hole filling), ordered outer contour, contour
    mask and 3-4 chamfer distance map; with the time of each stage; the colour test eager and
    through ``torch.compile`` (``segmentation.compile: true``; compile time printed apart);
@@ -41,6 +42,7 @@ from torchfit.image import (
     fit_background,
     mahalanobis_distance,
     outer_contours,
+    shadow_mask,
 )
 
 W, H = 720, 576
@@ -114,7 +116,8 @@ def main() -> None:
 
     print(f"\n1. whole chain at {W}x{H}, CPU, median of {args.repeats}")
     print(
-        "   colour test  batch  frames/s  ms/frame | test  clean-up  contour  dist-map   (ms/frame)"
+        "   colour test  batch  frames/s  ms/frame | test  shadow  clean-up  contour  dist-map"
+        "   (ms/frame)"
     )
     contours_for_dt = None
     for mode, b in [(m, b) for m in args.modes for b in args.batch]:
@@ -131,6 +134,19 @@ def main() -> None:
             t0 = time.perf_counter()
             raw = mahalanobis_distance(model, images, compiled=compiled) > cfg.threshold
             t1 = time.perf_counter()
+            if cfg.shadow_test:
+                raw = raw & ~shadow_mask(
+                    model,
+                    images,
+                    cfg.shadow_ratio,
+                    cfg.shadow_chroma,
+                    cfg.shadow_noise,
+                    cfg.shadow_window,
+                    cfg.shadow_texture,
+                    cfg.shadow_min_texture,
+                    cfg.shadow_max_residual,
+                )
+            ts = time.perf_counter()
             masks = clean_mask(raw, cfg.open_kernel, cfg.close_kernel, cfg.fill_holes)
             t2 = time.perf_counter()
             pts = outer_contours(masks)
@@ -141,8 +157,8 @@ def main() -> None:
             dist = distance_map(seeds, cfg.distance)
             t4 = time.perf_counter()
             for k, v in zip(
-                ("test", "clean", "contour", "dist"),
-                (t1 - t0, t2 - t1, t3 - t2, t4 - t3),
+                ("test", "shadow", "clean", "contour", "dist"),
+                (t1 - t0, ts - t1, t2 - ts, t3 - t2, t4 - t3),
                 strict=True,
             ):
                 stages.setdefault(k, []).append(v)
@@ -152,7 +168,8 @@ def main() -> None:
         per = {k: statistics.median(v[1:]) / b * 1e3 for k, v in stages.items()}
         print(
             f"   {mode:11s}  {b:5d}  {b / total:8.1f}  {total / b * 1e3:8.1f} | "
-            f"{per['test']:5.1f}  {per['clean']:8.1f}  {per['contour']:7.1f}  {per['dist']:8.1f}"
+            f"{per['test']:5.1f}  {per['shadow']:6.1f}  {per['clean']:8.1f}  "
+            f"{per['contour']:7.1f}  {per['dist']:8.1f}"
         )
         contours_for_dt = contour_mask(
             clean_mask(mahalanobis_distance(model, images) > cfg.threshold)
