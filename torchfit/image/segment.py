@@ -66,6 +66,11 @@ class SegmentationOptions:
     shadow_texture: float = 0.5
     shadow_min_texture: float = 0.5
     shadow_max_residual: float = 10.0
+    # where background and frame are both flat (no texture to confirm a shadow: a plain grey
+    # shirt in front of a plain lighter grey wall looks like one), call shadow only within the
+    # lowest shadow_flat_band fraction of the foreground's height, where the floor shadow lies;
+    # 1 everywhere
+    shadow_flat_band: float = 1.0
     # floor heuristics (off by default): apply the test only to the lowest shadow_band fraction
     # of the foreground's height (1 applies it everywhere), and keep as person the shadow-like
     # pixels with person both above and below them in their image column (a shin of the
@@ -182,6 +187,14 @@ def segment(
                 f"segmentation.shadow_ratio: expected [low, high], got {options.shadow_ratio}"
             )
         low, high = options.shadow_ratio[0], options.shadow_ratio[1]
+        if not 0.0 < options.shadow_flat_band <= 1.0:
+            raise ConfigError(
+                "segmentation.shadow_flat_band: expected a value in (0, 1], got "
+                f"{options.shadow_flat_band}"
+            )
+        flat_band = None
+        if options.shadow_flat_band < 1.0:
+            flat_band = lower_band(raw, options.shadow_flat_band, options.open_kernel)
         shadow = shadow_mask(
             background,
             images,
@@ -193,6 +206,7 @@ def segment(
             options.shadow_min_texture,
             options.shadow_max_residual,
             raw,
+            flat_band,
         )
         if not 0.0 < options.shadow_band <= 1.0:
             raise ConfigError(

@@ -36,7 +36,10 @@ of the person, not of the background. What no local test can separate is smooth 
 is a darker copy of a flat background (a plain grey shirt in front of a lighter, untextured grey
 wall): it passes all three tests.
 
-Two position heuristics from the floor-shadow test remain as options (off by default):
+Where background and frame are both flat, ``flat_allowed`` can restrict the shadow decision
+to a region (``SegmentationOptions.shadow_flat_band``: the lowest part of the foreground, where
+the floor shadow lies). Two position heuristics from the floor-shadow test remain as options
+(off by default):
 :func:`lower_band` limits the test to the lowest fraction of the foreground's vertical extent,
 and :func:`bridged` finds the shadow-like pixels that have person (non-shadow foreground) both
 above and below them in their image column, as a shin between the knee and a shoe has and a
@@ -81,6 +84,7 @@ def shadow_mask(
     min_texture: float = 0.5,
     max_residual: float = 10.0,
     foreground: torch.Tensor | None = None,
+    flat_allowed: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Pixels that look like a cast shadow on the background (see the module docstring).
 
@@ -104,6 +108,8 @@ def shadow_mask(
             attenuation does not explain, in units of the gradient noise.
         foreground: ``(B, 1, H, W)`` bool, the pixels the colour test took for the person,
             or None; with it the windows see only foreground candidates.
+        flat_allowed: ``(B, 1, H, W)`` bool, where a pixel on flat background may be called
+            a shadow (e.g. :func:`lower_band`), or None for everywhere.
 
     Returns:
         ``(B, 1, H, W)`` bool, True where the pixel is an attenuated copy of the background.
@@ -181,7 +187,10 @@ def shadow_mask(
     # correlate the channels)
     textured = alpha.square() * energy >= min_texture * var
     slope = cross / energy.clamp_min(1e-12)
-    decided = torch.where(textured, slope >= texture * alpha, residual <= max_residual * var)
+    flat = residual <= max_residual * var
+    if flat_allowed is not None:
+        flat = flat & flat_allowed
+    decided = torch.where(textured, slope >= texture * alpha, flat)
     return shadow & decided
 
 
