@@ -99,7 +99,9 @@ def test_soft_shadow_on_textured_wall_and_on_flat_wall() -> None:
         r = np.hypot(yy - 48, xx - 64)
         att = torch.from_numpy(0.5 + 0.5 * np.clip((r - 25) / 6, 0, 1)).float()
         image = _shot(wall * att, 1.5 / 255)
-        cfg = SegmentationOptions(largest_region=False)
+        # the flat-background decision everywhere (by default only in the lower half of the
+        # foreground, where a floor shadow lies)
+        cfg = SegmentationOptions(largest_region=False, shadow_flat_band=1.0)
         result = segment(image, fit_background(frames, cfg), cfg)
         disc = torch.from_numpy(r < 31)
         assert float(result.masks[0, 0].sum()) <= left * float(disc.sum())

@@ -69,8 +69,8 @@ class SegmentationOptions:
     # where background and frame are both flat (no texture to confirm a shadow: a plain grey
     # shirt in front of a plain lighter grey wall looks like one), call shadow only within the
     # lowest shadow_flat_band fraction of the foreground's height, where the floor shadow lies;
-    # 1 everywhere
-    shadow_flat_band: float = 1.0
+    # 1 everywhere (0.5 chosen on the development data, benchmarks/RESULTS.md)
+    shadow_flat_band: float = 0.5
     # floor heuristics (off by default): apply the test only to the lowest shadow_band fraction
     # of the foreground's height (1 applies it everywhere), and keep as person the shadow-like
     # pixels with person both above and below them in their image column (a shin of the
