@@ -7,7 +7,8 @@ Prints machine and versions, then
 
 1. frames per second at 720x576 for the whole chain, batched: photometric compensation
    (per-channel gains against the background, ``segmentation.photometric``; off with
-   ``--no-photometric``), Mahalanobis test (HSL),
+   ``--no-photometric``), Mahalanobis test (HSL), the shadow test of the default options
+   (attenuation, chromaticity, texture; its own column),
    clean-up (opening, largest region, closing, hole filling), ordered outer contour, contour
    mask and 3-4 chamfer distance map; with the time of each stage; the colour test eager and
    through ``torch.compile`` (``segmentation.compile: true``; compile time printed apart);
@@ -45,6 +46,7 @@ from torchfit.image import (
     mahalanobis_distance,
     match_background,
     outer_contours,
+    shadow_mask,
 )
 
 W, H = 720, 576
@@ -139,7 +141,8 @@ def main() -> None:
     print(f"\n1. whole chain at {W}x{H}, CPU, {unit}, median of {args.repeats}")
     print(f"   photometric compensation: {'on' if cfg.photometric else 'off'}")
     print(
-        "   colour test  batch  frames/s  ms/frame | photo  test  clean-up  contour  dist-map"
+        "   colour test  batch  frames/s  ms/frame | photo  test  shadow  clean-up  contour  "
+        "dist-map"
         "   (ms/frame)"
     )
     contours_for_dt = None
@@ -159,6 +162,19 @@ def main() -> None:
             t0 = clock()
             raw = mahalanobis_distance(model, matched, compiled=compiled) > cfg.threshold
             t1 = clock()
+            if cfg.shadow_test:
+                raw = raw & ~shadow_mask(
+                    model,
+                    matched,
+                    cfg.shadow_ratio,
+                    cfg.shadow_chroma,
+                    cfg.shadow_noise,
+                    cfg.shadow_window,
+                    cfg.shadow_texture,
+                    cfg.shadow_min_texture,
+                    cfg.shadow_max_residual,
+                )
+            ts = clock()
             masks = clean_mask(raw, cfg.open_kernel, cfg.close_kernel, cfg.fill_holes)
             implausible(masks, cfg.plausibility)
             t2 = clock()
@@ -170,8 +186,8 @@ def main() -> None:
             dist = distance_map(seeds, cfg.distance)
             t4 = clock()
             for k, v in zip(
-                ("photo", "test", "clean", "contour", "dist"),
-                (t0 - tp, t1 - t0, t2 - t1, t3 - t2, t4 - t3),
+                ("photo", "test", "shadow", "clean", "contour", "dist"),
+                (t0 - tp, t1 - t0, ts - t1, t2 - ts, t3 - t2, t4 - t3),
                 strict=True,
             ):
                 stages.setdefault(k, []).append(v)
@@ -181,8 +197,8 @@ def main() -> None:
         per = {k: statistics.median(v[1:]) / b * 1e3 for k, v in stages.items()}
         print(
             f"   {mode:11s}  {b:5d}  {b / total:8.1f}  {total / b * 1e3:8.1f} | "
-            f"{per['photo']:5.1f}  {per['test']:5.1f}  {per['clean']:8.1f}  {per['contour']:7.1f}  "
-            f"{per['dist']:8.1f}"
+            f"{per['photo']:5.1f}  {per['test']:5.1f}  {per['shadow']:6.1f}  "
+            f"{per['clean']:8.1f}  {per['contour']:7.1f}  {per['dist']:8.1f}"
         )
         contours_for_dt = contour_mask(
             clean_mask(mahalanobis_distance(model, images) > cfg.threshold)

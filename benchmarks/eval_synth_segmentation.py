@@ -7,7 +7,10 @@
 masks (``truth_masks/poseK.png`` and ``truth_masks/poseK_shadow.png``; add them to older
 subjects with ``--masks-only``). ``--config`` is a full run config (its ``segmentation``
 section is used; default: the library's ``SegmentationOptions()``); ``--set`` overrides take
-``segmentation.KEY=VALUE`` or just ``KEY=VALUE``.
+``segmentation.KEY=VALUE`` or just ``KEY=VALUE``. ``--global-gain`` divides each posture
+image by its per-channel median ratio to the background mean before segmenting (a crude
+stand-in for photometric compensation, for rooms whose exposure changes between the
+background frames and the postures).
 
 Per subject and posture image it prints:
 
@@ -72,7 +75,18 @@ def _overlay(image: np.ndarray, pred: np.ndarray, truth: np.ndarray, shadow: np.
     return out
 
 
-def evaluate_subject(folder: Path, cfg, stereo: bool, overlays: Path | None) -> list[dict]:
+def _global_gain(frames: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """Each image divided by its per-channel median ratio to the background mean: a crude
+    stand-in for photometric compensation (exposure, white balance), so that the shadow test
+    can be scored apart from exposure changes."""
+    mean = background.mean(0, keepdim=True)
+    gain = (frames / mean.clamp_min(0.02)).flatten(2).median(2).values[..., None, None]
+    return (frames / gain).clamp(0, 1)
+
+
+def evaluate_subject(
+    folder: Path, cfg, stereo: bool, overlays: Path | None, gain: bool = False
+) -> list[dict]:
     """Rows of figures for the posture images (and the stereo pair) of one subject."""
     views = [(folder / "background", [folder / "poses" / f"pose{k}.png" for k in range(1, 7)])]
     truth_dirs = [folder / "truth_masks"]
@@ -87,6 +101,8 @@ def evaluate_subject(folder: Path, cfg, stereo: bool, overlays: Path | None) -> 
         bg, _ = load_frames(bg_dir)
         model = fit_background(bg, cfg)
         frames, paths = load_frames(images)
+        if gain:
+            frames = _global_gain(frames, bg)
         res = segment(frames, model, cfg)
         for i, path in enumerate(paths):
             pred = res.masks[i, 0].numpy()
@@ -148,6 +164,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--overlays", default=None, help="write overlay PNGs to this folder")
     parser.add_argument("--csv", default=None, help="write the per-image rows to this CSV")
     parser.add_argument("--quiet", action="store_true", help="print only the means")
+    parser.add_argument(
+        "--global-gain",
+        action="store_true",
+        help="divide each image by its per-channel median ratio to the background first",
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     overrides = [s if s.startswith("segmentation.") else f"segmentation.{s}" for s in args.set]
@@ -168,7 +189,7 @@ def main(argv: list[str] | None = None) -> None:
     if not args.quiet:
         print(header)
     for folder in folders:
-        new = evaluate_subject(folder, cfg, args.stereo, overlays)
+        new = evaluate_subject(folder, cfg, args.stereo, overlays, args.global_gain)
         rows += new
         if not args.quiet:
             for r in new:

@@ -428,9 +428,8 @@ class SilhouetteFit:
                     ("mb", "model_b"),
                 )
             }
-            # Products and sums written out, not einsum: a batched matrix product rounds a
-            # subject's row differently by batch size, and the sum over the model contour
-            # must not see its padding to the batch's longest (padded_row_sum).
+            # Products and sums written out, not einsum (batched products round a subject's
+            # row by batch size); the model-contour sum ignores padding (padded_row_sum).
             block_p = _dot2(local["pa"], t_of["pa"]) + _dot2(local["pb"], t_of["pb"])
             per_point = _dot2(local["ma"], t_of["ma"]) + _dot2(local["mb"], t_of["mb"])
             block_m = padded_row_sum(per_point.transpose(1, 2))

@@ -109,6 +109,10 @@ class BackgroundModel:
         gamma: lightness weight used for the features.
         rgb_mean: ``(B, 3, H, W)`` mean RGB in ``[0, 1]`` of the background (for the shadow
             test), or None.
+        rgb_var: ``(B, 1, H, W)`` per-pixel noise variance of the background's RGB (mean over
+            the channels, ``[0, 1]`` units squared, smoothed over 5 x 5 pixels so that a few
+            frames give a stable estimate), or None; the shadow test scales the colour
+            distortion it allows with it.
         precision: ``(B, 6, H, W)`` the inverse covariance, packed as
             ``(p00, p11, p22, p01, p02, p12)``; derived, not an argument.
     """
@@ -118,6 +122,7 @@ class BackgroundModel:
     color_space: Literal["hsl", "rgb"] = "hsl"
     gamma: float = 0.3
     rgb_mean: torch.Tensor | None = field(default=None, repr=False)
+    rgb_var: torch.Tensor | None = field(default=None, repr=False)
     precision: torch.Tensor = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -134,8 +139,9 @@ class BackgroundModel:
     def to(self, device: torch.device | str) -> BackgroundModel:
         """The same model on another device."""
         rgb = None if self.rgb_mean is None else self.rgb_mean.to(device)
+        var = None if self.rgb_var is None else self.rgb_var.to(device)
         return BackgroundModel(
-            self.mean.to(device), self.covariance.to(device), self.color_space, self.gamma, rgb
+            self.mean.to(device), self.covariance.to(device), self.color_space, self.gamma, rgb, var
         )
 
 
@@ -178,6 +184,7 @@ def fit_background(
     feats = color_features(frames, options.color_space, options.gamma)  # (B, N, 3, H, W)
     if options.background == "frames":
         rgb_mean = frames.mean(1)
+        rgb_var = frames.var(1).mean(1, keepdim=True)
         mean = feats.mean(1)
         dev = feats - mean.unsqueeze(1)
         cov = torch.einsum("bnihw,bnjhw->bijhw", dev, dev) / (n - 1)
@@ -193,13 +200,20 @@ def fit_background(
         cov = cov * _HALF_SAMPLE_CONSISTENCY
         rgb = frames.gather(1, idx.unsqueeze(2).expand(-1, -1, 3, -1, -1))
         rgb_mean = rgb.mean(1)
+        rgb_var = rgb.var(1).mean(1, keepdim=True) * _HALF_SAMPLE_CONSISTENCY
     else:
         raise ValueError(
             f"options.background must be 'frames' or 'temporal_median', got {options.background!r}"
         )
     eye = torch.eye(3, dtype=cov.dtype, device=cov.device).view(1, 3, 3, 1, 1)
+    rgb_var = torch.nn.functional.avg_pool2d(rgb_var, 5, 1, 2, count_include_pad=False)
     return BackgroundModel(
-        mean, cov + options.regularization * eye, options.color_space, options.gamma, rgb_mean
+        mean,
+        cov + options.regularization * eye,
+        options.color_space,
+        options.gamma,
+        rgb_mean,
+        rgb_var,
     )
 
 
@@ -263,5 +277,3 @@ def _compiled_distance():
     if "distance" not in _COMPILED:
         _COMPILED["distance"] = torch.compile(_distance_kernel, dynamic=False)
     return _COMPILED["distance"]
-
-

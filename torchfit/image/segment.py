@@ -7,9 +7,11 @@ of the chain (it is also the ``segmentation:`` section of the run config).
 The chain: with ``photometric`` (default) each frame's per-channel gains against the background
 frames are estimated and undone (:mod:`torchfit.image.photometric`: exposure, white balance);
 the Mahalanobis test of :mod:`torchfit.image.background` above ``threshold``; with
-``shadow_test`` the pixels :func:`~torchfit.image.shadow.shadow_mask` takes for a cast shadow
-(within the lowest ``shadow_band`` of the foreground, and with ``shadow_bridge`` not between
-the body and a part cut off below it) become background again; then :func:`clean_mask`:
+``shadow_test`` (the default) the foreground pixels :func:`~torchfit.image.shadow.shadow_mask`
+takes for a cast shadow, anywhere in the frame (floor, walls, furniture), become background
+again (with the optional floor heuristics: only within the lowest ``shadow_band`` of the
+foreground, and with ``shadow_bridge`` not between the body and a part cut off below it); then
+:func:`clean_mask`:
 opening, largest 8-connected region, closing and hole filling. ``fill_holes`` fills background
 regions enclosed by the silhouette; with ``max_hole_area`` only those up to that fraction of
 the silhouette's area, so that a large enclosed gap (between the legs, closed below by a shadow
@@ -41,7 +43,7 @@ class SegmentationOptions:
     """HSL Mahalanobis background subtraction and clean-up (first paper, section 4)."""
 
     threshold: float = 4.0  # Mahalanobis distance above which a pixel is the person
-    gamma: float = 0.3  # weight of lightness against the hue/saturation disc, in [0, 1]
+    gamma: float = 1.0  # weight of lightness against the hue/saturation disc, in [0, 1]
     color_space: Literal["hsl", "rgb"] = "hsl"  # "rgb" is the baseline, for comparisons only
     regularization: float = 1.0  # variance added to the covariance diagonal, (8-bit levels)^2
     min_background_frames: int = 5
@@ -53,19 +55,32 @@ class SegmentationOptions:
     # largest hole filled, as a fraction of the silhouette's area (holes included); None fills
     # every hole. A small value keeps the gap between the legs when a shadow closes it below
     max_hole_area: float | None = None
-    # explicit cast-shadow test (the first paper's suggested improvement, its reference [4]):
-    # a pixel darker than the background by an RGB ratio in shadow_ratio, with a colour
-    # direction within shadow_chroma (radians) of the background's, is background
-    shadow_test: bool = False
-    shadow_ratio: tuple[float, float] = (0.5, 0.95)
-    shadow_chroma: float = 0.05
-    # the shadow test applies only to the lowest shadow_band fraction of the foreground's
-    # height (cast shadows lie on the floor around the feet; grey clothing on a grey wall
-    # passes the colour test too); 1 applies it everywhere
+    # explicit cast-shadow test (the first paper's suggested improvement, its reference [4];
+    # image/shadow.py): a foreground pixel that is an attenuated copy of the background is
+    # background again. Attenuated: brightness ratio <I, B> / |B|^2 in shadow_ratio; colour
+    # distortion at most shadow_chroma (radians) plus shadow_noise standard deviations of the
+    # pixel's background noise; where the background is textured (gradient energy at least
+    # shadow_min_texture times the noise, over shadow_window x shadow_window pixels), the
+    # frame's gradients regress on the background's with a slope of at least shadow_texture
+    # times the ratio. No position in the silhouette enters (walls, furniture, floor alike)
+    shadow_test: bool = True
+    shadow_ratio: tuple[float, float] = (0.3, 1.0)
+    shadow_chroma: float = 0.03
+    shadow_noise: float = 1.0
+    shadow_window: int = 7
+    shadow_texture: float = 0.5
+    shadow_min_texture: float = 0.5
+    shadow_max_residual: float = 10.0
+    # where background and frame are both flat (no texture to confirm a shadow: a plain grey
+    # shirt in front of a plain lighter grey wall looks like one), call shadow only within the
+    # lowest shadow_flat_band fraction of the foreground's height, where the floor shadow lies;
+    # 1 everywhere (0.5 chosen on the development data, benchmarks/RESULTS.md)
+    shadow_flat_band: float = 0.5
+    # floor heuristics (off by default): apply the test only to the lowest shadow_band fraction
+    # of the foreground's height (1 applies it everywhere), and keep as person the shadow-like
+    # pixels with person both above and below them in their image column (a shin of the
+    # floor's colour between the knee and a dark shoe)
     shadow_band: float = 1.0
-    # keep as person the shadow-like pixels with person both above and below them in their
-    # image column (a grey shin between the knee and a dark shoe), which a cast shadow on the
-    # floor beside or in front of the feet never has
     shadow_bridge: bool = False
     distance: Literal["chamfer", "euclidean"] = "chamfer"
     # estimate each frame's per-channel gains (exposure, white balance) against the background
@@ -170,9 +185,9 @@ def segment(
         background: from :func:`~torchfit.image.background.fit_background`, batch 1 or
             ``B``.
         options: ``threshold``, ``open_kernel``, ``close_kernel``, ``fill_holes``,
-            ``max_hole_area``, ``largest_region`` and, with ``shadow_test``, ``shadow_ratio``,
-            ``shadow_chroma`` and ``shadow_band`` are used; with ``photometric`` each image's
-            exposure and white balance are matched to the background's first
+            ``max_hole_area``, ``largest_region`` and, with ``shadow_test``, the ``shadow_*``
+            keys are used; with ``photometric`` each image's exposure and white balance are
+            matched to the background's first
             (:func:`~torchfit.image.photometric.match_background`).
 
     Returns:
@@ -193,7 +208,27 @@ def segment(
                 f"segmentation.shadow_ratio: expected [low, high], got {options.shadow_ratio}"
             )
         low, high = options.shadow_ratio[0], options.shadow_ratio[1]
-        shadow = shadow_mask(background, images, (low, high), options.shadow_chroma)
+        if not 0.0 < options.shadow_flat_band <= 1.0:
+            raise ConfigError(
+                "segmentation.shadow_flat_band: expected a value in (0, 1], got "
+                f"{options.shadow_flat_band}"
+            )
+        flat_band = None
+        if options.shadow_flat_band < 1.0:
+            flat_band = lower_band(raw, options.shadow_flat_band, options.open_kernel)
+        shadow = shadow_mask(
+            background,
+            images,
+            (low, high),
+            options.shadow_chroma,
+            options.shadow_noise,
+            options.shadow_window,
+            options.shadow_texture,
+            options.shadow_min_texture,
+            options.shadow_max_residual,
+            raw,
+            flat_band,
+        )
         if not 0.0 < options.shadow_band <= 1.0:
             raise ConfigError(
                 f"segmentation.shadow_band: expected a value in (0, 1], got {options.shadow_band}"
@@ -213,5 +248,3 @@ def segment(
         options.max_hole_area,
     )
     return SegmentationResult(masks, distance, masks.flatten(1).any(1), removed, gains)
-
-

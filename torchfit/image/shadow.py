@@ -1,21 +1,47 @@
-"""Explicit cast-shadow test, restricted to the lowest band of the silhouette and bridged.
+"""Explicit cast-shadow test: attenuation, chromaticity and texture against the background.
 
 Conventions: images ``(B, 3, H, W)`` RGB in ``[0, 1]``; masks ``(B, 1, H, W)`` bool.
 
 The first paper notes that shadow handling "could be improved by a similarity measure like in
-[4]" (its reference [4]); :func:`shadow_mask` is such a measure, in the spirit of
-brightness/chromaticity-distortion shadow detectors. With ``B`` the background's mean RGB and
-``I`` the pixel's RGB (both 0–1, as stored, i.e. gamma encoded; a uniform darkening stays
-uniform under the power law), the brightness ratio is ``alpha = <I, B> / |B|^2`` and the colour
-change is the angle between ``I`` and ``B``. A pixel is shadow-like when
-``ratio[0] <= alpha <= ratio[1]`` and the angle is at most ``max_angle`` radians: darker, same
-colour direction.
+[4]" (its reference [4]); :func:`shadow_mask` is such a measure. A cast shadow attenuates the
+light reaching a surface: the pixel becomes a darker copy of the background, with the same
+chromaticity and the same texture. With ``B`` the background's mean RGB and ``I`` the pixel's
+RGB (both 0–1, as stored, i.e. gamma encoded; a uniform darkening stays uniform under the
+power law) and ``sigma^2`` the background's per-pixel noise variance
+(:attr:`~torchfit.image.background.BackgroundModel.rgb_var`), a pixel is shadow-like when
 
-Colour alone cannot tell a shadow from grey clothing in front of a lighter grey wall (both are
-"darker, same direction"), so :func:`lower_band` limits the test to the lowest fraction of the
-foreground's vertical extent, where a standing person's floor shadow lies. A shin in trousers
-of the floor's colour passes the test as well and cuts the feet off the silhouette;
-:func:`bridged` finds the shadow-like pixels that have person (non-shadow foreground) both
+1. **attenuation**: ``ratio[0] <= alpha <= ratio[1]`` with ``alpha = <I, B> / |B|^2``;
+2. **chromaticity**: the colour distortion ``|I - alpha B|`` (the distance from the line
+   through the background colour) is at most ``max_angle * alpha |B| + noise * sqrt(2) sigma``:
+   an angle for the tint of the ambient light, plus the noise a pixel shows on its own (the
+   perpendicular part of an isotropic 3-D noise has two degrees of freedom), so a noisy pixel
+   is allowed more distortion than a steady one;
+3. **texture**: over a ``window`` x ``window`` box of *candidates* (pixels that pass 1 and 2
+   and, where ``foreground`` is given, that the colour test took for the person), compare the
+   frame's luma gradients ``g_I`` with the background's ``g_B``. Where the background is
+   textured, its attenuated gradient energy ``alpha^2 mean(|g_B|^2)`` at least ``min_texture``
+   times the gradient noise ``sigma^2``, the regression slope
+   ``beta = sum(w g_I . g_B) / sum(w |g_B|^2)`` must be at least ``texture * alpha``: a shadow
+   keeps the background's edges, scaled by ``alpha`` (``beta ~ alpha``); a person in front of
+   a textured background does not (``beta ~ 0``, whatever the person's own texture or
+   colour). The weights ``w = 1 / (1 + |g_I - alpha g_B|^2 / (4 (alpha^2 |g_B|^2 +
+   sigma^2)))`` are one step of a robust (Cauchy) regression, so that the shadow's own border
+   (a step of ``alpha``) hardly counts. Where the background is flat the texture cannot
+   confirm a shadow; there the frame must be flat too, up to a smooth change of attenuation
+   (a penumbra): the spread (variance over the box) of ``g_I - alpha g_B`` is at most
+   ``max_residual * sigma^2``. A person's folds, shading and texture spread more.
+
+A darker part of the person (a self-shadow on the body) fails test 2 or 3: it is a darker copy
+of the person, not of the background. What no local test can separate is smooth clothing that
+is a darker copy of a flat background (a plain grey shirt in front of a lighter, untextured grey
+wall): it passes all three tests.
+
+Where background and frame are both flat, ``flat_allowed`` can restrict the shadow decision
+to a region (``SegmentationOptions.shadow_flat_band``: the lowest part of the foreground, where
+the floor shadow lies). Two position heuristics from the floor-shadow test remain as options
+(off by default):
+:func:`lower_band` limits the test to the lowest fraction of the foreground's vertical extent,
+and :func:`bridged` finds the shadow-like pixels that have person (non-shadow foreground) both
 above and below them in their image column, as a shin between the knee and a shoe has and a
 shadow cast on the floor beside, behind or in front of the feet has not.
 """
@@ -26,6 +52,7 @@ import math
 
 import numpy as np
 import torch
+import torch.nn.functional as F  # noqa: N812
 
 from torchfit.errors import SegmentationError
 from torchfit.image.background import BackgroundModel, _check_images
@@ -33,28 +60,75 @@ from torchfit.image.morphology import binary_opening, largest_component
 
 __all__ = ["shadow_mask", "lower_band", "bridged"]
 
+# noise variance used where a model has no rgb_var, and added to every pixel's: the
+# quantisation floor of 8-bit images, (1 / 255)^2 (a step of one level)
+_NOISE_FLOOR = (1.0 / 255.0) ** 2
+
+
+def _luma_gradients(luma: torch.Tensor) -> torch.Tensor:
+    """``(N, 1, H, W)`` -> ``(N, 2, H, W)`` central differences (x, y), replicate border."""
+    padded = F.pad(luma, (1, 1, 1, 1), mode="replicate")
+    gx = 0.5 * (padded[..., 1:-1, 2:] - padded[..., 1:-1, :-2])
+    gy = 0.5 * (padded[..., 2:, 1:-1] - padded[..., :-2, 1:-1])
+    return torch.cat([gx, gy], 1)
+
+
+def _box_sums(x: torch.Tensor, window: int) -> torch.Tensor:
+    """Sums of ``x (N, C, H, W)`` over ``window`` x ``window`` boxes centred on each pixel (zero
+    outside the image), from running sums along each axis in turn: about four times faster on
+    CPU than ``avg_pool2d`` with this window, and the shadow test needs only ratios of sums."""
+    r = window // 2
+    c = F.pad(x, (r + 1, r)).cumsum(-1)
+    x = c[..., window:] - c[..., :-window]
+    c = F.pad(x, (0, 0, r + 1, r)).cumsum(-2)
+    return c[..., window:, :] - c[..., :-window, :]
+
 
 def shadow_mask(
     model: BackgroundModel,
     images: torch.Tensor,
-    ratio: tuple[float, float] = (0.5, 0.95),
-    max_angle: float = 0.05,
+    ratio: tuple[float, float] = (0.3, 1.0),
+    max_angle: float = 0.03,
+    noise: float = 1.0,
+    window: int = 7,
+    texture: float = 0.5,
+    min_texture: float = 0.5,
+    max_residual: float = 10.0,
+    foreground: torch.Tensor | None = None,
+    flat_allowed: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Pixels that look like a cast shadow on the background (see the module docstring).
 
     Args:
-        model: with ``rgb_mean`` (from :func:`~torchfit.image.background.fit_background`),
+        model: with ``rgb_mean`` (and ``rgb_var``; without it only the quantisation noise of
+            8-bit images is assumed) from :func:`~torchfit.image.background.fit_background`,
             batch 1 or ``B``.
         images: ``(B, 3, H, W)`` RGB in ``[0, 1]``, the size of the model.
         ratio: ``(low, high)`` bounds of the brightness ratio ``<I, B> / |B|^2``.
-        max_angle: largest angle (radians) between the pixel's and the background's RGB.
+        max_angle: colour distortion allowed beyond the noise, as an angle (radians) between
+            the pixel's and the background's RGB.
+        noise: colour distortion allowed for the noise, in standard deviations of the
+            background's per-pixel noise.
+        window: side (odd, pixels) of the box over which the textures are compared.
+        texture: smallest slope of the frame's gradients on the background's, relative to
+            ``alpha``, for a shadow on textured background, in ``[0, 1]``.
+        min_texture: background gradient energy (attenuated by ``alpha``), in units of the
+            gradient noise, above which the texture decides; ``inf`` turns the texture test
+            off.
+        max_residual: on flat background, the largest spread of the frame's gradients that
+            attenuation does not explain, in units of the gradient noise.
+        foreground: ``(B, 1, H, W)`` bool, the pixels the colour test took for the person,
+            or None; with it the windows see only foreground candidates.
+        flat_allowed: ``(B, 1, H, W)`` bool, where a pixel on flat background may be called
+            a shadow (e.g. :func:`lower_band`), or None for everywhere.
 
     Returns:
-        ``(B, 1, H, W)`` bool, True where the pixel is a darker copy of the background.
+        ``(B, 1, H, W)`` bool, True where the pixel is an attenuated copy of the background.
 
     Raises:
         ShapeError: for a wrongly shaped ``images``.
         SegmentationError: if the model has no ``rgb_mean`` or the sizes differ.
+        ValueError: for bounds or a window out of range.
     """
     _check_images("images", images, 1)
     if model.rgb_mean is None:
@@ -67,13 +141,68 @@ def shadow_mask(
     low, high = ratio
     if not 0.0 < low <= high:
         raise ValueError(f"ratio must satisfy 0 < low <= high, got {ratio}")
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be odd and >= 1, got {window}")
+    if max_angle < 0 or noise < 0 or min_texture < 0:
+        raise ValueError(
+            f"max_angle, noise and min_texture must be >= 0, got {max_angle}, {noise}, "
+            f"{min_texture}"
+        )
     bg = model.rgb_mean.to(images.dtype)
+    var = _NOISE_FLOOR
+    if model.rgb_var is not None:
+        var = model.rgb_var.to(images.dtype) + _NOISE_FLOOR
     dot = (images * bg).sum(1, keepdim=True)
     bb = bg.square().sum(1, keepdim=True).clamp_min(1e-6)
-    ii = images.square().sum(1, keepdim=True).clamp_min(1e-6)
+    ii = images.square().sum(1, keepdim=True)
     alpha = dot / bb
-    cos = (dot / (bb * ii).sqrt()).clamp(-1.0, 1.0)
-    return (alpha >= low) & (alpha <= high) & (cos >= math.cos(max_angle))
+    # |I - alpha B|^2 = |I|^2 - <I, B>^2 / |B|^2 (the part of I off the background's colour line)
+    off = (ii - dot * alpha).clamp_min(0.0).sqrt()
+    allowed = max_angle * alpha.clamp_min(0.0) * bb.sqrt() + noise * math.sqrt(2.0) * var**0.5
+    shadow = (alpha >= low) & (alpha <= high) & (off <= allowed)
+    if math.isinf(min_texture) or not bool(shadow.any()):
+        return shadow
+    g_img = _luma_gradients(images.mean(1, keepdim=True))
+    g_bg = _luma_gradients(bg.mean(1, keepdim=True))
+    diff = g_img - alpha * g_bg  # what attenuation of the background does not explain
+    energy = g_bg.square().sum(1, keepdim=True)
+    unexplained = diff.square().sum(1, keepdim=True)
+    # the windows average over the candidates only (shadow-like by colour, and foreground where
+    # given), so that the person's pixels and the untouched background next to a candidate do
+    # not enter its statistics
+    inside = shadow if foreground is None else shadow & foreground
+    inside = inside.to(images.dtype)
+    # one step of a robust (Cauchy-weighted) regression: a gradient far larger than attenuated
+    # texture plus noise would give, the edge of the shadow itself, hardly counts in the slope
+    weight = inside / (1.0 + unexplained / (4.0 * (alpha.square() * energy + var)))
+    stats = torch.cat(
+        [
+            inside,
+            weight,
+            weight * (g_img * g_bg).sum(1, keepdim=True),
+            weight * energy,
+            inside * diff,
+            inside * unexplained,
+        ],
+        1,
+    )
+    means = _box_sums(stats, window)  # sums, not means: only their ratios enter below
+    support, robust = means[:, 0:1].clamp_min(1e-6), means[:, 1:2].clamp_min(1e-6)
+    cross, energy = means[:, 2:3] / robust, means[:, 3:4] / robust
+    # the spread of the unexplained gradients: a smooth change of the attenuation (a penumbra)
+    # has about one gradient over the window, a person's texture or shading many
+    spread = means[:, 6:7] / support - (means[:, 4:6] / support).square().sum(1, keepdim=True)
+    residual = spread.clamp_min(0.0)
+    # the luma's gradient noise: a central difference of a mean of 3 channels, x and y together,
+    # has variance sigma^2 / 3 at most (independent channels); take sigma^2 (JPEG and demosaicing
+    # correlate the channels)
+    textured = alpha.square() * energy >= min_texture * var
+    slope = cross / energy.clamp_min(1e-12)
+    flat = residual <= max_residual * var
+    if flat_allowed is not None:
+        flat = flat & flat_allowed
+    decided = torch.where(textured, slope >= texture * alpha, flat)
+    return shadow & decided
 
 
 def lower_band(masks: torch.Tensor, fraction: float, open_kernel: int) -> torch.Tensor:
