@@ -36,6 +36,7 @@ import torch
 
 from torchfit.image import (
     SegmentationOptions,
+    cast_shadow,
     chamfer_distance_transform,
     clean_mask,
     contour_mask,
@@ -46,7 +47,6 @@ from torchfit.image import (
     mahalanobis_distance,
     match_background,
     outer_contours,
-    shadow_mask,
 )
 
 W, H = 720, 576
@@ -162,18 +162,7 @@ def main() -> None:
             t0 = clock()
             raw = mahalanobis_distance(model, matched, compiled=compiled) > cfg.threshold
             t1 = clock()
-            if cfg.shadow_test:
-                raw = raw & ~shadow_mask(
-                    model,
-                    matched,
-                    cfg.shadow_ratio,
-                    cfg.shadow_chroma,
-                    cfg.shadow_noise,
-                    cfg.shadow_window,
-                    cfg.shadow_texture,
-                    cfg.shadow_min_texture,
-                    cfg.shadow_max_residual,
-                )
+            raw = raw & ~cast_shadow(model, matched, raw, cfg)
             ts = clock()
             masks = clean_mask(raw, cfg.open_kernel, cfg.close_kernel, cfg.fill_holes)
             implausible(masks, cfg.plausibility)

@@ -44,6 +44,7 @@ from torchfit.image.plausibility import PlausibilityOptions, implausible, silhou
 from torchfit.image.segment import (
     SegmentationOptions,
     SegmentationResult,
+    cast_shadow,
     clean_mask,
     segment,
 )
@@ -70,6 +71,7 @@ __all__ = [
     "implausible",
     "SegmentationOptions",
     "SegmentationResult",
+    "cast_shadow",
     "clean_mask",
     "segment",
     "trace_outer_contour",

@@ -35,7 +35,13 @@ from torchfit.image.photometric import match_background
 from torchfit.image.plausibility import PlausibilityOptions
 from torchfit.image.shadow import bridged, lower_band, shadow_mask
 
-__all__ = ["SegmentationOptions", "SegmentationResult", "clean_mask", "segment"]
+__all__ = [
+    "SegmentationOptions",
+    "SegmentationResult",
+    "cast_shadow",
+    "clean_mask",
+    "segment",
+]
 
 
 @dataclass(frozen=True)
@@ -201,44 +207,8 @@ def segment(
         gains = photometric.undone
     distance = mahalanobis_distance(background, images, compiled=options.compile)
     raw = distance > options.threshold
-    removed = torch.zeros_like(raw)
-    if options.shadow_test:
-        if len(options.shadow_ratio) != 2:
-            raise ConfigError(
-                f"segmentation.shadow_ratio: expected [low, high], got {options.shadow_ratio}"
-            )
-        low, high = options.shadow_ratio[0], options.shadow_ratio[1]
-        if not 0.0 < options.shadow_flat_band <= 1.0:
-            raise ConfigError(
-                "segmentation.shadow_flat_band: expected a value in (0, 1], got "
-                f"{options.shadow_flat_band}"
-            )
-        flat_band = None
-        if options.shadow_flat_band < 1.0:
-            flat_band = lower_band(raw, options.shadow_flat_band, options.open_kernel)
-        shadow = shadow_mask(
-            background,
-            images,
-            (low, high),
-            options.shadow_chroma,
-            options.shadow_noise,
-            options.shadow_window,
-            options.shadow_texture,
-            options.shadow_min_texture,
-            options.shadow_max_residual,
-            raw,
-            flat_band,
-        )
-        if not 0.0 < options.shadow_band <= 1.0:
-            raise ConfigError(
-                f"segmentation.shadow_band: expected a value in (0, 1], got {options.shadow_band}"
-            )
-        if options.shadow_band < 1.0:
-            shadow = shadow & lower_band(raw, options.shadow_band, options.open_kernel)
-        if options.shadow_bridge:
-            shadow = shadow & ~bridged(raw & ~shadow, options.open_kernel)
-        removed = raw & shadow
-        raw = raw & ~shadow
+    removed = cast_shadow(background, images, raw, options)
+    raw = raw & ~removed
     masks = clean_mask(
         raw,
         options.open_kernel,
@@ -248,3 +218,51 @@ def segment(
         options.max_hole_area,
     )
     return SegmentationResult(masks, distance, masks.flatten(1).any(1), removed, gains)
+
+
+def cast_shadow(
+    background: BackgroundModel,
+    images: torch.Tensor,
+    raw: torch.Tensor,
+    options: SegmentationOptions,
+) -> torch.Tensor:
+    """The pixels of the colour test's foreground ``raw`` (B, 1, H, W) that the shadow test of
+    ``options`` takes for a cast shadow (all False without ``shadow_test``); ``images`` are
+    the (photometrically matched) frames."""
+    if not options.shadow_test:
+        return torch.zeros_like(raw)
+    if len(options.shadow_ratio) != 2:
+        raise ConfigError(
+            f"segmentation.shadow_ratio: expected [low, high], got {options.shadow_ratio}"
+        )
+    low, high = options.shadow_ratio[0], options.shadow_ratio[1]
+    if not 0.0 < options.shadow_flat_band <= 1.0:
+        raise ConfigError(
+            "segmentation.shadow_flat_band: expected a value in (0, 1], got "
+            f"{options.shadow_flat_band}"
+        )
+    flat_band = None
+    if options.shadow_flat_band < 1.0:
+        flat_band = lower_band(raw, options.shadow_flat_band, options.open_kernel)
+    shadow = shadow_mask(
+        background,
+        images,
+        (low, high),
+        options.shadow_chroma,
+        options.shadow_noise,
+        options.shadow_window,
+        options.shadow_texture,
+        options.shadow_min_texture,
+        options.shadow_max_residual,
+        raw,
+        flat_band,
+    )
+    if not 0.0 < options.shadow_band <= 1.0:
+        raise ConfigError(
+            f"segmentation.shadow_band: expected a value in (0, 1], got {options.shadow_band}"
+        )
+    if options.shadow_band < 1.0:
+        shadow = shadow & lower_band(raw, options.shadow_band, options.open_kernel)
+    if options.shadow_bridge:
+        shadow = shadow & ~bridged(raw & ~shadow, options.open_kernel)
+    return raw & shadow

@@ -118,7 +118,9 @@ def shadow_mask(
         max_residual: on flat background, the largest spread of the frame's gradients that
             attenuation does not explain, in units of the gradient noise.
         foreground: ``(B, 1, H, W)`` bool, the pixels the colour test took for the person,
-            or None; with it the windows see only foreground candidates.
+            or None; with it the windows see only foreground candidates, only foreground
+            pixels are decided (the rest is False), and the texture test runs on the box
+            around them alone.
         flat_allowed: ``(B, 1, H, W)`` bool, where a pixel on flat background may be called
             a shadow (e.g. :func:`lower_band`), or None for everywhere.
 
@@ -162,6 +164,76 @@ def shadow_mask(
     shadow = (alpha >= low) & (alpha <= high) & (off <= allowed)
     if math.isinf(min_texture) or not bool(shadow.any()):
         return shadow
+    if foreground is not None:
+        return _foreground_only(
+            shadow,
+            foreground,
+            window,
+            images,
+            bg,
+            var,
+            alpha,
+            texture,
+            min_texture,
+            max_residual,
+            flat_allowed,
+        )
+    return shadow & _texture_decides(
+        images, bg, var, alpha, shadow, window, texture, min_texture, max_residual, flat_allowed
+    )
+
+
+def _foreground_only(shadow, foreground, window, images, bg, var, alpha, *rest) -> torch.Tensor:
+    """The texture test on the box around the foreground's shadow-like pixels only (the same
+    result there as on the whole frame: the windows and gradients of a pixel reach ``window //
+    2 + 1`` pixels, and the box keeps that margin); False elsewhere."""
+    cand = shadow & foreground
+    out = torch.zeros_like(cand)
+    if not bool(cand.any()):
+        return out
+    rows = cand.any(3).any(1).any(0).nonzero()[:, 0]
+    cols = cand.any(2).any(1).any(0).nonzero()[:, 0]
+    margin = window // 2 + 1
+    h, w = cand.shape[-2:]
+    y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)
+    x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin + 1, w)
+
+    def crop(t):
+        if not isinstance(t, torch.Tensor) or t.dim() != 4:
+            return t
+        return t[..., y0:y1, x0:x1]
+
+    texture, min_texture, max_residual, flat_allowed = rest
+    decided = _texture_decides(
+        crop(images),
+        crop(bg),
+        crop(var),
+        crop(alpha),
+        crop(cand),
+        window,
+        texture,
+        min_texture,
+        max_residual,
+        crop(flat_allowed),
+    )
+    out[..., y0:y1, x0:x1] = crop(cand) & decided
+    return out
+
+
+def _texture_decides(
+    images: torch.Tensor,
+    bg: torch.Tensor,
+    var: torch.Tensor | float,
+    alpha: torch.Tensor,
+    inside: torch.Tensor,
+    window: int,
+    texture: float,
+    min_texture: float,
+    max_residual: float,
+    flat_allowed: torch.Tensor | None,
+) -> torch.Tensor:
+    """Test 3 of the module docstring at every pixel, the windows over the candidates
+    ``inside`` (B, 1, H, W) bool."""
     g_img = _luma_gradients(images.mean(1, keepdim=True))
     g_bg = _luma_gradients(bg.mean(1, keepdim=True))
     diff = g_img - alpha * g_bg  # what attenuation of the background does not explain
@@ -170,7 +242,6 @@ def shadow_mask(
     # the windows average over the candidates only (shadow-like by colour, and foreground where
     # given), so that the person's pixels and the untouched background next to a candidate do
     # not enter its statistics
-    inside = shadow if foreground is None else shadow & foreground
     inside = inside.to(images.dtype)
     # one step of a robust (Cauchy-weighted) regression: a gradient far larger than attenuated
     # texture plus noise would give, the edge of the shadow itself, hardly counts in the slope
@@ -201,8 +272,7 @@ def shadow_mask(
     flat = residual <= max_residual * var
     if flat_allowed is not None:
         flat = flat & flat_allowed
-    decided = torch.where(textured, slope >= texture * alpha, flat)
-    return shadow & decided
+    return torch.where(textured, slope >= texture * alpha, flat)
 
 
 def lower_band(masks: torch.Tensor, fraction: float, open_kernel: int) -> torch.Tensor:
