@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from meshes import box_mesh
 
 from torchfit.config import load_config
 from torchfit.errors import ConfigError, ShapeError
@@ -176,31 +177,6 @@ def test_generated_subject_is_valid_plausible_and_deterministic(tmp_path):
     assert summary["height_m"] == truth["height_m"]
 
 
-def _box_mesh(lo, hi):
-    x0, y0, z0 = lo
-    x1, y1, z1 = hi
-    v = np.array(
-        [[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (z0, z1)], dtype=np.float64
-    )
-    f = np.array(
-        [
-            [0, 1, 3],
-            [0, 3, 2],
-            [4, 6, 7],
-            [4, 7, 5],
-            [0, 4, 5],
-            [0, 5, 1],
-            [2, 3, 7],
-            [2, 7, 6],
-            [0, 2, 6],
-            [0, 6, 4],
-            [1, 5, 7],
-            [1, 7, 3],
-        ]
-    )
-    return v, f
-
-
 def test_render_body_occludes_room_and_casts_a_floor_shadow():
     from torchfit.camera import project_points
     from torchfit.synth.scene import Light, render, sample_camera, sample_room
@@ -215,7 +191,7 @@ def test_render_body_occludes_room_and_casts_a_floor_shadow():
     # light from the camera's side, 70 degrees off: the shadow falls behind and beside the box
     light_dir = np.array([math.cos(az + 1.2), math.sin(az + 1.2), 1.0])
     light = Light(light_dir / np.linalg.norm(light_dir), ambient=0.45, diffuse=0.6)
-    v, f = _box_mesh((-0.2, -0.2, 0.0), (0.2, 0.2, 1.6))
+    v, f = box_mesh((-0.2, -0.2, 0.0), (0.2, 0.2, 1.6))
     albedo = np.tile([0.1, 0.2, 0.8], (len(v), 1))
     empty = render(room, camera, light, None)
     full = render(room, camera, light, (v, f, albedo))
@@ -261,7 +237,7 @@ def test_render_layers_give_the_true_person_and_shadow_masks(tmp_path):
     camera = sample_camera(rng, centre, np.array([0.0, 0.0, 1.0]), (180, 144), 2.8)
     light_dir = np.array([math.cos(az + 1.2), math.sin(az + 1.2), 1.0])
     light = Light(light_dir / np.linalg.norm(light_dir), ambient=0.45, diffuse=0.6)
-    v, f = _box_mesh((-0.2, -0.2, 0.0), (0.2, 0.2, 1.6))
+    v, f = box_mesh((-0.2, -0.2, 0.0), (0.2, 0.2, 1.6))
     albedo = np.tile([0.1, 0.2, 0.8], (len(v), 1))
     colour, person, shadow = render(room, camera, light, (v, f, albedo), layers=True)
     np.testing.assert_array_equal(colour, render(room, camera, light, (v, f, albedo)))

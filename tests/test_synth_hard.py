@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from meshes import box_mesh
 
 from torchfit.config import load_config
 from torchfit.errors import ConfigError
@@ -17,32 +18,6 @@ from torchfit.synth.scene import Light, finish, render, sample_camera, sample_ro
 from torchfit.synth.shadow import shadow_map_test
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _box_mesh(lo, hi):
-    """A closed box, triangles counter-clockwise seen from outside."""
-    x0, y0, z0 = lo
-    x1, y1, z1 = hi
-    v = np.array(
-        [[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (z0, z1)], dtype=np.float64
-    )
-    f = np.array(
-        [
-            [0, 1, 3],
-            [0, 3, 2],
-            [4, 6, 7],
-            [4, 7, 5],
-            [0, 4, 5],
-            [0, 5, 1],
-            [2, 3, 7],
-            [2, 7, 6],
-            [0, 2, 6],
-            [0, 6, 4],
-            [1, 5, 7],
-            [1, 7, 3],
-        ]
-    )
-    return v, f
 
 
 def _scene(seed: int, az: float, size=(96, 80)):
@@ -61,7 +36,7 @@ def test_default_render_is_unchanged():
     # torchfit at commit b1e3c2c (main, before the hard rooms), numpy 2 / OpenCV 4 on CPU.
     rng, room, camera, light = _scene(5, 2.0)
     assert len(room.boxes) == 2 and len(room.pictures) == 2
-    v, f = _box_mesh((-0.2, -0.2, 0.0), (0.2, 0.2, 1.6))
+    v, f = box_mesh((-0.2, -0.2, 0.0), (0.2, 0.2, 1.6))
     albedo = np.tile([0.1, 0.2, 0.8], (len(v), 1))
     colour, person, cast = render(room, camera, light, (v, f, albedo), layers=True)
     img = finish(colour, rng, np.array([1.01, 0.99, 1.0]), 2.0)
@@ -89,7 +64,7 @@ def _ray_hits(v, f, origin, direction):
 
 
 def test_shadow_map_matches_naive_ray_casting():
-    v, f = _box_mesh((-0.2, -0.15, 0.5), (0.25, 0.2, 1.4))
+    v, f = box_mesh((-0.2, -0.15, 0.5), (0.25, 0.2, 1.4))
     light = np.array([0.5, -0.3, 0.6])
     light /= np.linalg.norm(light)
     rng = np.random.default_rng(0)
@@ -122,7 +97,7 @@ def test_all_surfaces_shadow_falls_on_the_back_wall():
     az = room.azimuth + math.radians(30)  # low light from the camera's side
     d = np.array([math.cos(az) * math.cos(0.4), math.sin(az) * math.cos(0.4), math.sin(0.4)])
     light = Light(d, ambient=0.3, diffuse=0.7)
-    v, f = _box_mesh((-0.2, -0.2, 0.0), (0.2, 0.2, 1.6))
+    v, f = box_mesh((-0.2, -0.2, 0.0), (0.2, 0.2, 1.6))
     albedo = np.tile([0.1, 0.2, 0.8], (len(v), 1))
     body = (v, f, albedo)
     empty = render(room, camera, light, None)

@@ -183,40 +183,54 @@ def shadow_mask(
     )
 
 
-def _foreground_only(shadow, foreground, window, images, bg, var, alpha, *rest) -> torch.Tensor:
-    """The texture test on the box around the foreground's shadow-like pixels only (the same
-    result there as on the whole frame: the windows and gradients of a pixel reach ``window //
-    2 + 1`` pixels, and the box keeps that margin); False elsewhere."""
+def _foreground_only(
+    shadow: torch.Tensor,
+    foreground: torch.Tensor,
+    window: int,
+    images: torch.Tensor,
+    bg: torch.Tensor,
+    var: torch.Tensor | float,
+    alpha: torch.Tensor,
+    texture: float,
+    min_texture: float,
+    max_residual: float,
+    flat_allowed: torch.Tensor | None,
+) -> torch.Tensor:
+    """The texture test, image by image, on the box around each image's foreground shadow-like
+    pixels only (the same result there as on the whole frame: the windows and gradients of a
+    pixel reach ``window // 2 + 1`` pixels, and the box keeps that margin); False elsewhere.
+    Small boxes one at a time stay in the cache, which the whole batch at once does not."""
     cand = shadow & foreground
     out = torch.zeros_like(cand)
-    if not bool(cand.any()):
-        return out
-    rows = cand.any(3).any(1).any(0).nonzero()[:, 0]
-    cols = cand.any(2).any(1).any(0).nonzero()[:, 0]
     margin = window // 2 + 1
     h, w = cand.shape[-2:]
-    y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)
-    x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin + 1, w)
+    for b in range(cand.shape[0]):
+        rows = cand[b, 0].any(1).nonzero()[:, 0]
+        if rows.numel() == 0:
+            continue
+        cols = cand[b, 0].any(0).nonzero()[:, 0]
+        y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)
+        x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin + 1, w)
 
-    def crop(t):
-        if not isinstance(t, torch.Tensor) or t.dim() != 4:
-            return t
-        return t[..., y0:y1, x0:x1]
+        def crop(t, b=b, y0=y0, y1=y1, x0=x0, x1=x1):
+            if not isinstance(t, torch.Tensor) or t.dim() != 4:
+                return t
+            i = b if t.shape[0] > 1 else 0
+            return t[i : i + 1, :, y0:y1, x0:x1]
 
-    texture, min_texture, max_residual, flat_allowed = rest
-    decided = _texture_decides(
-        crop(images),
-        crop(bg),
-        crop(var),
-        crop(alpha),
-        crop(cand),
-        window,
-        texture,
-        min_texture,
-        max_residual,
-        crop(flat_allowed),
-    )
-    out[..., y0:y1, x0:x1] = crop(cand) & decided
+        decided = _texture_decides(
+            crop(images),
+            crop(bg),
+            crop(var),
+            crop(alpha),
+            crop(cand),
+            window,
+            texture,
+            min_texture,
+            max_residual,
+            crop(flat_allowed),
+        )
+        out[b : b + 1, :, y0:y1, x0:x1] = crop(cand) & decided
     return out
 
 
