@@ -3,7 +3,7 @@
 After the last stage the postures of each subject are compared
 (:func:`torchfit.fit.stages.pose_outliers` on their contour RMS): one that disagrees with the
 others is down-weighted (``fit.pose_outlier_weight``) and the last stage runs once more
-(``<name>_reweighted``) for the batch. At the end, the down-weighted
+(``<name>_reweighted``) for the subjects with such a posture only. At the end, the down-weighted
 postures, implausible body proportions (:mod:`torchfit.pipeline.checks`) and scales on their
 upper bound become the ``flags`` of the subject's last stage record, which the judge reads.
 """
@@ -133,36 +133,58 @@ def run_stages(
     Returns:
         (B, P) fitted parameters and, per subject, one :class:`StageRecord` per stage.
     """
-    solver = config.solver
     records: list[list[StageRecord]] = [[] for _ in names]
     fit.pose_weights.fill_(1.0)
     downweighted: list[dict[int, str]] = [{} for _ in names]
-    schedule = list(config.fit.stages)
-    si = 0
-    while si < len(schedule):
-        stage = schedule[si]
-        options = solver.lm_options(stage.max_iter or solver.max_iter)
-        if stage.loss is not None:
-            options = replace(options, loss=stage.loss)
-        tag = f"stage{si + 1}_{stage.name}"
-        x, per = _run_stage(fit, x, config, stage, options, names, tag, tb, progress)
-        for i, (code, cost, iters, message) in enumerate(per):
-            records[i].append(StageRecord(stage.name, _status_name(code), message, cost, iters))
-        if any(_status_name(p[0]) in FAILED_SOLVER_STATUS for p in per):
-            log.warning("%s: %s", tag, [p[3] for p in per])
-        last = si == len(schedule) - 1
-        if last and config.fit.method != "minpack_rendered":
-            # postures are compared once the whole schedule has run (an earlier stage has not
-            # fitted every segment yet); a new outlier gets the last stage once more
-            new = _reweight(fit, x, config, downweighted, names)
-            if new and not stage.name.endswith("_reweighted"):
-                schedule.append(replace(stage, name=f"{stage.name}_reweighted"))
-        si += 1
+    stages = list(config.fit.stages)
+    for si, stage in enumerate(stages):
+        x = _stage_for(fit, x, config, stage, names, range(len(names)), si, records, tb, progress)
+    if config.fit.method != "minpack_rendered":
+        # postures are compared once the whole schedule has run (an earlier stage has not
+        # fitted every segment yet); a subject with a new outlier, and only it, gets the last
+        # stage once more, so that a subject's result does not depend on the others in its batch
+        rerun = _reweight(fit, x, config, downweighted, names)
+        if rerun:
+            again = replace(stages[-1], name=f"{stages[-1].name}_reweighted")
+            sub = fit.subset(rerun)
+            x_sub = _stage_for(
+                sub, x[rerun], config, again, names, rerun, len(stages), records, tb, progress
+            )
+            x = x.index_copy(0, torch.tensor(rerun, device=x.device), x_sub)
+            _reweight(fit, x, config, downweighted, names)
     flags = _final_flags(fit, x, config, downweighted)
     for i, f in enumerate(flags):
         records[i][-1].flags = f
     fit.pose_weights.fill_(1.0)
     return x, records
+
+
+def _stage_for(
+    fit: SilhouetteFit,
+    x: torch.Tensor,
+    config: Config,
+    stage,
+    names: list[str],
+    rows,
+    si: int,
+    records: list[list[StageRecord]],
+    tb,
+    progress,
+) -> torch.Tensor:
+    """Stage ``si`` for the subjects ``rows`` (the batch of ``fit`` and ``x``); appends their
+    records and returns their (N, P) parameters."""
+    solver = config.solver
+    options = solver.lm_options(stage.max_iter or solver.max_iter)
+    if stage.loss is not None:
+        options = replace(options, loss=stage.loss)
+    tag = f"stage{si + 1}_{stage.name}"
+    own = [names[i] for i in rows]
+    x, per = _run_stage(fit, x, config, stage, options, own, tag, tb, progress)
+    for i, (code, cost, iters, message) in zip(rows, per, strict=True):
+        records[i].append(StageRecord(stage.name, _status_name(code), message, cost, iters))
+    if any(_status_name(p[0]) in FAILED_SOLVER_STATUS for p in per):
+        log.warning("%s: %s", tag, [p[3] for p in per])
+    return x
 
 
 def _run_stage(fit, x, config, stage, options, names, tag, tb, progress):
@@ -208,13 +230,14 @@ def _reweight(
     config: Config,
     downweighted: list[dict[int, str]],
     names: list[str],
-) -> bool:
-    """Down-weight the postures that now disagree with the others; True if any is new."""
+) -> list[int]:
+    """Down-weight the postures that now disagree with the others; the subjects with a newly
+    down-weighted posture."""
     opts = config.fit
     rms, _ = pose_contour_rms(fit, x)
     outliers = pose_outliers(rms, opts.pose_outlier_k, opts.pose_outlier_min_px)
     med = rms.median(dim=1).values
-    new = False
+    new: list[int] = []
     for i, k in outliers.nonzero().tolist():
         j = fit.poses[k]
         downweighted[i][j] = (
@@ -223,7 +246,7 @@ def _reweight(
         )
         if float(fit.pose_weights[i, k]) == 1.0:
             fit.pose_weights[i, k] = opts.pose_outlier_weight
-            new = True
+            new += [] if i in new else [i]
             log.info("%s: %s", names[i], downweighted[i][j])
     return new
 
