@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 __all__ = ["PartsOptions"]
 
@@ -36,6 +37,12 @@ class PartsOptions:
             independent labelling of both views).
         match_radius: matching window half-size, * T.
         match_search_px: search +- this along the epipolar line, pixels.
+        stereo_depth: with ``stereo_match``, where a joint's depth comes from: ``outline``
+            matches the whole left outline, weighting each point by how well its edge fixes
+            a shift along the epipolar line, and takes the weighted median depth of the
+            outline around the joint (:mod:`torchfit.parts.depth`); ``anchors`` matches the
+            joint's own cut ends only (blind where a limb lies along the epipolar line).
+        depth_sigma: ``outline``: the neighbourhood of a joint on the outline, * T.
     """
 
     smoothing_px: float = 1.0
@@ -55,3 +62,5 @@ class PartsOptions:
     stereo_match: bool = True
     match_radius: float = 0.1
     match_search_px: float = 8.0
+    stereo_depth: Literal["outline", "anchors"] = "outline"
+    depth_sigma: float = 0.8

@@ -20,6 +20,7 @@ from torchfit.io.dataset import StereoInfo
 from torchfit.io.images import load_frames, read_image
 from torchfit.parts.correspond import corresponding_joints
 from torchfit.parts.decompose import decompose_cactus
+from torchfit.parts.depth import joints_at_depth, outline_depths
 from torchfit.parts.options import PartsOptions
 from torchfit.parts.rules import Labelling
 from torchfit.parts.stereo import stereo_measurements, triangulate_midpoint
@@ -49,7 +50,8 @@ class StereoResult:
     Attributes:
         status: ``"ok"`` or ``"failed"``.
         failed_rule: the rule that failed (``"segmentation"``, ``"contour"``, a rule of
-            :data:`torchfit.parts.rules.RULE_NAMES`), None when ok.
+            :data:`torchfit.parts.rules.RULE_NAMES`, or ``"stereo"`` when no matched outline
+            lies near a joint), None when ok.
         message: the reason, naming the view ("" when ok).
         joints_world: joint name -> ``[x, y, z]`` metres (empty when failed).
         ray_gap_m: joint name -> distance between the two viewing rays, metres.
@@ -134,6 +136,41 @@ def measure_stereo_pair(
             out.message = f"{side} view: {labelling.failed_rule}: {labelling.message}"
             return out
     left, right = out.views["left"].labelling, out.views["right"].labelling
+    if parts.stereo_match and parts.stereo_depth == "outline":
+        _, _, trunk = left.body_frame()
+        jl, jr = left.joints, right.joints
+        guess = np.median([jr[n] - jl[n] for n in jl if n in jr], axis=0)
+        outline = outline_depths(
+            fill_holes(out.views["left"].mask),
+            fill_holes(out.views["right"].mask),
+            guess,
+            stereo.left,
+            stereo.right,
+            search_px=parts.match_search_px,
+        )
+        out.joints_world, out.ray_gap_m = joints_at_depth(
+            outline, jl, jr, stereo.left, stereo.right, parts.depth_sigma * trunk
+        )
+        out.pixels = {"left": jl, "right": jr}
+        missing = [n for n in jl if n in jr and n not in out.joints_world]
+        if missing:
+            out.failed_rule = "stereo"
+            out.message = f"no matched outline near {missing}"
+            return out
+        joints = {n: torch.tensor([v], dtype=torch.float64) for n, v in out.joints_world.items()}
+    else:
+        joints = _triangulate_labels(out, stereo, parts)
+    out.measurements = {k: float(v[0]) for k, v in stereo_measurements(joints).items()}
+    out.status = "ok"
+    return out
+
+
+def _triangulate_labels(
+    out: StereoResult, stereo: StereoInfo, parts: PartsOptions
+) -> dict[str, torch.Tensor]:
+    """Triangulate the labelled joints (after matching their anchors, with ``stereo_match``)
+    by the midpoint method; fills ``out.pixels``, ``joints_world`` and ``ray_gap_m``."""
+    left, right = out.views["left"].labelling, out.views["right"].labelling
     jl, jr = left.joints, right.joints
     if parts.stereo_match:
         _, _, trunk = left.body_frame()
@@ -154,9 +191,6 @@ def measure_stereo_pair(
     pl = torch.tensor(np.stack([jl[n] for n in names]), dtype=torch.float64)[None]
     pr = torch.tensor(np.stack([jr[n] for n in names]), dtype=torch.float64)[None]
     points, gap = triangulate_midpoint(pl, stereo.left, pr, stereo.right)
-    joints = {n: points[:, i] for i, n in enumerate(names)}
     out.joints_world = {n: [float(x) for x in points[0, i]] for i, n in enumerate(names)}
     out.ray_gap_m = {n: float(gap[0, i]) for i, n in enumerate(names)}
-    out.measurements = {k: float(v[0]) for k, v in stereo_measurements(joints).items()}
-    out.status = "ok"
-    return out
+    return {n: points[:, i] for i, n in enumerate(names)}
