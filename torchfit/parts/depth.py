@@ -56,9 +56,7 @@ class OutlineDepth:
 
 def _outline(mask: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
     """Points every ``step`` pixels along the largest outer contour and unit tangents there."""
-    contours, _ = cv2.findContours(
-        mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
-    )
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not contours:
         return np.zeros((0, 2)), np.zeros((0, 2))
     c = max(contours, key=len)[:, 0, :].astype(np.float64)
