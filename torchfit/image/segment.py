@@ -241,9 +241,12 @@ def cast_shadow(
             "segmentation.shadow_flat_band: expected a value in (0, 1], got "
             f"{options.shadow_flat_band}"
         )
+    # the clean-up opens the mask first: what the opening removes is background whatever the
+    # shadow test says, so the test decides only inside the box of what the opening keeps
+    opened = binary_opening(raw, options.open_kernel) if options.open_kernel > 1 else raw
     flat_band = None
     if options.shadow_flat_band < 1.0:
-        flat_band = lower_band(raw, options.shadow_flat_band, options.open_kernel)
+        flat_band = lower_band(opened, options.shadow_flat_band, 1)
     shadow = shadow_mask(
         background,
         images,
@@ -256,13 +259,14 @@ def cast_shadow(
         options.shadow_max_residual,
         raw,
         flat_band,
+        opened,
     )
     if not 0.0 < options.shadow_band <= 1.0:
         raise ConfigError(
             f"segmentation.shadow_band: expected a value in (0, 1], got {options.shadow_band}"
         )
     if options.shadow_band < 1.0:
-        shadow = shadow & lower_band(raw, options.shadow_band, options.open_kernel)
+        shadow = shadow & lower_band(opened, options.shadow_band, 1)
     if options.shadow_bridge:
         shadow = shadow & ~bridged(raw & ~shadow, options.open_kernel)
     return raw & shadow
