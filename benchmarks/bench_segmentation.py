@@ -8,8 +8,8 @@ Prints machine and versions, then
 1. frames per second at 720x576 for the whole chain, batched: photometric compensation
    (per-channel gains against the background, ``segmentation.photometric``; off with
    ``--no-photometric``), Mahalanobis test (HSL), the shadow test of the default options
-   (attenuation, chromaticity, texture; its own column),
-   clean-up (opening, largest region, closing, hole filling), ordered outer contour, contour
+   (attenuation, chromaticity, texture; its own column), clean-up (opening, largest region,
+   closing, hole filling, the outline's mixed pixels), ordered outer contour, contour
    mask and 3-4 chamfer distance map; with the time of each stage; the colour test eager and
    through ``torch.compile`` (``segmentation.compile: true``; compile time printed apart);
 2. the torch 3-4 chamfer transform against ``cv2.distanceTransform(DIST_L2, 3)`` on the same
@@ -47,6 +47,7 @@ from torchfit.image import (
     mahalanobis_distance,
     match_background,
     outer_contours,
+    refine_edges,
 )
 
 W, H = 720, 576
@@ -169,6 +170,7 @@ def main() -> None:
             raw = raw & ~cast_shadow(model, matched, raw, cfg)
             ts = clock()
             masks = clean_mask(raw, cfg.open_kernel, cfg.close_kernel, cfg.fill_holes)
+            masks = refine_edges(matched, model, masks, 2, cfg.edge_separation)
             implausible(masks, cfg.plausibility)
             t2 = clock()
             pts = outer_contours(masks)
