@@ -17,8 +17,8 @@ background model's mean, and ``a = <I - B, P - B> / |P - B|^2`` (the projection 
 from background to person). A pixel with ``a < 1/2`` is background. Where ``P`` and ``B`` are
 closer than ``separation`` standard deviations of the background's noise the mixture cannot
 be measured and the pixel stays as it is; so it does where no interior pixel lies in its
-window (a thin limb, all outline). The largest region is kept afterwards, so that the outline
-never splits into fragments.
+window (a thin limb, all outline). For one person the largest region is kept afterwards, so
+that the outline never splits into fragments.
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ def refine_edges(
     masks: torch.Tensor,
     width: int = 2,
     separation: float = 6.0,
+    largest_region: bool = True,
 ) -> torch.Tensor:
     """Drop the outline pixels that the person covers less than half (module docstring).
 
@@ -54,10 +55,12 @@ def refine_edges(
             ``masks``.
         separation: least distance between the person's and the background's colour, in
             standard deviations of the background's noise, for the mixture to be measured.
+        largest_region: keep only the largest region afterwards (the masks hold one person);
+            ``False`` only drops the pixels.
 
     Returns:
         ``(B, 1, H, W)`` bool, ``masks`` without the outline pixels that are mostly
-        background (one region per image), on the masks' device.
+        background (one region per image with ``largest_region``), on the masks' device.
 
     Raises:
         SegmentationError: the model has no ``rgb_mean``.
@@ -111,5 +114,6 @@ def refine_edges(
         drop[ys[lost], xs[lost]] = True
         if drop.any():
             mask[drop] = 0
-            out[b, 0, y0:y1, x0:x1] = torch.from_numpy(largest_component(mask))
+            kept = largest_component(mask) if largest_region else mask > 0
+            out[b, 0, y0:y1, x0:x1] = torch.from_numpy(kept)
     return out.to(masks.device)

@@ -235,7 +235,9 @@ def segment(
     if width is None:
         width = 2 if options.background == "frames" else 0
     if width > 0:
-        masks = refine_edges(images, background, masks, width, options.edge_separation)
+        masks = refine_edges(
+            images, background, masks, width, options.edge_separation, options.largest_region
+        )
     return SegmentationResult(masks, distance, masks.flatten(1).any(1), removed, gains)
 
 
