@@ -9,9 +9,10 @@ Prints machine and versions, then
    (per-channel gains against the background, ``segmentation.photometric``; off with
    ``--no-photometric``), Mahalanobis test (HSL), the shadow test of the default options
    (attenuation, chromaticity, texture; its own column), clean-up (opening, largest region,
-   closing, hole filling, the outline's mixed pixels), ordered outer contour, contour
-   mask and 3-4 chamfer distance map; with the time of each stage; the colour test eager and
-   through ``torch.compile`` (``segmentation.compile: true``; compile time printed apart);
+   closing, hole filling; with ``segmentation.edge_width`` the outline's mixed pixels), ordered
+   outer contour, contour mask and 3-4 chamfer distance map; with the time of each stage;
+   the colour test eager and through ``torch.compile`` (``segmentation.compile: true``;
+   compile time printed apart);
 2. the torch 3-4 chamfer transform against ``cv2.distanceTransform(DIST_L2, 3)`` on the same
    contour images (both per image), and the exact Euclidean option.
 
@@ -170,7 +171,8 @@ def main() -> None:
             raw = raw & ~cast_shadow(model, matched, raw, cfg)
             ts = clock()
             masks = clean_mask(raw, cfg.open_kernel, cfg.close_kernel, cfg.fill_holes)
-            masks = refine_edges(matched, model, masks, 2, cfg.edge_separation)
+            if cfg.edge_width > 0:
+                masks = refine_edges(matched, model, masks, cfg.edge_width, cfg.edge_separation)
             implausible(masks, cfg.plausibility)
             t2 = clock()
             pts = outer_contours(masks)

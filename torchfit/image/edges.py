@@ -10,15 +10,18 @@ more than the noise, i.e. for a small ``a`` already, and the closing of the clea
 the outline outward: a silhouette comes out about a pixel fatter all around than the person's
 true outline (the pixels at least half covered).
 
-:func:`refine_edges` estimates ``a`` on the outline. Within ``width`` pixels of the outside,
-``P`` is the mean colour of the silhouette's interior (the mask eroded by a
-``(2 width + 1)`` square) over a ``(2 width + 3)`` square window around the pixel, ``B`` the
-background model's mean, and ``a = <I - B, P - B> / |P - B|^2`` (the projection on the line
-from background to person). A pixel with ``a < 1/2`` is background. Where ``P`` and ``B`` are
-closer than ``separation`` standard deviations of the background's noise the mixture cannot
-be measured and the pixel stays as it is; so it does where no interior pixel lies in its
-window (a thin limb, all outline). For one person the largest region is kept afterwards, so
-that the outline never splits into fragments.
+:func:`refine_edges` splits each outline pixel into its two sources. Within ``width`` pixels of
+the outside, ``P`` is the mean colour of the silhouette's interior (the mask eroded by a
+``(2 width + 1)`` square) over a ``(2 width + 3)`` square window around the pixel and ``B``
+the background model's mean; the pixel's colour is fitted as ``I = s P + t B`` by least
+squares. ``s`` is free (the person's outline is often shaded darker than its interior: a
+surface turning away from the light), so only the background's share ``t`` measures the
+coverage, ``1 - a``; a pixel with ``t > 1/2`` is background. Where ``B`` lies within
+``separation`` standard deviations of the background's noise of the line through ``P`` (the
+background is a shade of the person's colour: white clothing before a grey wall) the split is
+not defined and the pixel stays as it is; so it does where no interior pixel lies in its window
+(a thin limb, all outline). For one person the largest region is kept afterwards, so that the
+outline never splits into fragments.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ def refine_edges(
     separation: float = 6.0,
     largest_region: bool = True,
 ) -> torch.Tensor:
-    """Drop the outline pixels that the person covers less than half (module docstring).
+    """Drop the outline pixels that are more background than person (module docstring).
 
     Args:
         images: ``(B, 3, H, W)`` RGB in ``[0, 1]`` (photometrically matched, as tested).
@@ -53,8 +56,8 @@ def refine_edges(
         masks: ``(B, 1, H, W)`` bool cleaned silhouettes.
         width: how far in from the outside (pixels) a pixel may be dropped; 0 returns
             ``masks``.
-        separation: least distance between the person's and the background's colour, in
-            standard deviations of the background's noise, for the mixture to be measured.
+        separation: least distance of the background's colour from the person's colour line,
+            in standard deviations of the background's noise, for the split to be made.
         largest_region: keep only the largest region afterwards (the masks hold one person);
             ``False`` only drops the pixels.
 
@@ -99,17 +102,22 @@ def refine_edges(
         count = cv2.boxFilter(weight, -1, win, normalize=False, borderType=cv2.BORDER_CONSTANT)
         n = count[ys, xs]
         scale = 1.0 / np.maximum(n, 1e-6)
-        dot = np.zeros(ys.size, np.float32)
-        norm = np.zeros(ys.size, np.float32)
+        pp, pb, bb, pi, bi = (np.zeros(ys.size, np.float32) for _ in range(5))
         for c in range(3):  # the box sums densely (one SIMD pass), the rest on the rim only
             total = cv2.boxFilter(
                 img[c] * weight, -1, win, normalize=False, borderType=cv2.BORDER_CONSTANT
             )
-            b_c = bg[c][ys, xs]
-            d = total[ys, xs] * scale - b_c
-            dot += (img[c][ys, xs] - b_c) * d
-            norm += d * d
-        lost = (n > 0.5) & (norm >= separation**2 * var) & (dot < 0.5 * norm)
+            p_c, b_c, i_c = total[ys, xs] * scale, bg[c][ys, xs], img[c][ys, xs]
+            pp += p_c * p_c
+            pb += p_c * b_c
+            bb += b_c * b_c
+            pi += p_c * i_c
+            bi += b_c * i_c
+        # I = s P + t B by least squares; the background's share t = (|P|^2 <B, I> - <P, B>
+        # <P, I>) / det, det = |P|^2 |B_perp|^2 with B_perp the part of B off P's colour line
+        det = pp * bb - pb * pb
+        share = pp * bi - pb * pi
+        lost = (n > 0.5) & (det >= separation**2 * var * pp) & (share > 0.5 * det)
         drop = np.zeros(mask.shape, dtype=bool)
         drop[ys[lost], xs[lost]] = True
         if drop.any():
