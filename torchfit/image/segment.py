@@ -175,7 +175,9 @@ class SegmentationResult:
         distance: ``(B, 1, H, W)`` Mahalanobis distance to the background.
         found: ``(B,)`` bool, ``False`` where no person region was left after clean-up.
         shadow: ``(B, 1, H, W)`` bool, the pixels that differ from the background but that the
-            shadow test took for a cast shadow (all ``False`` without ``shadow_test``). Parts
+            shadow test took for a cast shadow (all ``False`` without ``shadow_test``); only
+            pixels that the clean-up's opening keeps are decided, isolated noise pixels are
+            not marked. Parts
             of the person that look like a darker copy of the floor (grey trousers or shoes on
             a grey or brown floor) end up here too: the fit can treat these pixels as
             uncertain instead of as background (``fit.ignore_shadow``).
