@@ -8,10 +8,11 @@ Prints machine and versions, then
 1. frames per second at 720x576 for the whole chain, batched: photometric compensation
    (per-channel gains against the background, ``segmentation.photometric``; off with
    ``--no-photometric``), Mahalanobis test (HSL), the shadow test of the default options
-   (attenuation, chromaticity, texture; its own column),
-   clean-up (opening, largest region, closing, hole filling), ordered outer contour, contour
-   mask and 3-4 chamfer distance map; with the time of each stage; the colour test eager and
-   through ``torch.compile`` (``segmentation.compile: true``; compile time printed apart);
+   (attenuation, chromaticity, texture; its own column), clean-up (opening, largest region,
+   closing, hole filling; with ``segmentation.edge_width`` the outline's mixed pixels), ordered
+   outer contour, contour mask and 3-4 chamfer distance map; with the time of each stage;
+   the colour test eager and through ``torch.compile`` (``segmentation.compile: true``;
+   compile time printed apart);
 2. the torch 3-4 chamfer transform against ``cv2.distanceTransform(DIST_L2, 3)`` on the same
    contour images (both per image), and the exact Euclidean option.
 
@@ -47,6 +48,7 @@ from torchfit.image import (
     mahalanobis_distance,
     match_background,
     outer_contours,
+    refine_edges,
 )
 
 W, H = 720, 576
@@ -141,9 +143,13 @@ def main() -> None:
     print(f"\n1. whole chain at {W}x{H}, CPU, {unit}, median of {args.repeats}")
     print(f"   photometric compensation: {'on' if cfg.photometric else 'off'}")
     print(
-        "   colour test  batch  frames/s  ms/frame | photo  test  shadow  clean-up  contour  "
-        "dist-map"
-        "   (ms/frame)"
+        "   'frames/s' is the whole row; 'seg f/s' the segmentation chain alone (photometric "
+        "compensation,\n   colour test, shadow test, clean-up: what tools/segment.py runs per "
+        "frame)"
+    )
+    print(
+        "   colour test  batch  frames/s  seg f/s  ms/frame | photo  test  shadow  clean-up  "
+        "contour  dist-map   (ms/frame)"
     )
     contours_for_dt = None
     for mode, b in [(m, b) for m in args.modes for b in args.batch]:
@@ -165,6 +171,8 @@ def main() -> None:
             raw = raw & ~cast_shadow(model, matched, raw, cfg)
             ts = clock()
             masks = clean_mask(raw, cfg.open_kernel, cfg.close_kernel, cfg.fill_holes)
+            if cfg.edge_width > 0:
+                masks = refine_edges(matched, model, masks, cfg.edge_width, cfg.edge_separation)
             implausible(masks, cfg.plausibility)
             t2 = clock()
             pts = outer_contours(masks)
@@ -184,8 +192,12 @@ def main() -> None:
 
         total = median_time(chain, args.repeats)
         per = {k: statistics.median(v[1:]) / b * 1e3 for k, v in stages.items()}
+        seg = statistics.median(
+            sum(stages[k][i] for k in ("photo", "test", "shadow", "clean"))
+            for i in range(1, len(stages["photo"]))
+        )
         print(
-            f"   {mode:11s}  {b:5d}  {b / total:8.1f}  {total / b * 1e3:8.1f} | "
+            f"   {mode:11s}  {b:5d}  {b / total:8.1f}  {b / seg:7.1f}  {total / b * 1e3:8.1f} | "
             f"{per['photo']:5.1f}  {per['test']:5.1f}  {per['shadow']:6.1f}  "
             f"{per['clean']:8.1f}  {per['contour']:7.1f}  {per['dist']:8.1f}"
         )

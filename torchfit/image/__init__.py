@@ -6,6 +6,7 @@ the top-left pixel and points are ``(u, v)`` with ``v`` down (``docs/design.md``
 
 - :mod:`~torchfit.image.background`: colour features and the per-pixel background model.
 - :mod:`~torchfit.image.shadow`: the explicit cast-shadow test.
+- :mod:`~torchfit.image.edges`: the outline's mixed pixels (person or background).
 - :mod:`~torchfit.image.morphology`: opening, closing, largest region, hole filling.
 - :mod:`~torchfit.image.photometric`: per-channel gains (exposure, white balance) undone.
 - :mod:`~torchfit.image.segment`: :class:`SegmentationOptions` and the whole chain.
@@ -28,6 +29,7 @@ from torchfit.image.distance import (
     mask_to_distance_map,
     sample_distance_map,
 )
+from torchfit.image.edges import refine_edges
 from torchfit.image.morphology import (
     binary_closing,
     binary_opening,
@@ -62,6 +64,7 @@ __all__ = [
     "binary_closing",
     "largest_component",
     "fill_holes",
+    "refine_edges",
     "PhotometricResult",
     "estimate_gains",
     "compensate",

@@ -97,10 +97,13 @@ def largest_component(mask: np.ndarray) -> np.ndarray:
         ``(H, W)`` bool, ``True`` on the largest region (all ``False`` if there is none).
     """
     binary = (np.asarray(mask) != 0).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    # the areas by counting labels: OpenCV's statistics cost several times the labelling
+    # itself on a mask with many speckles
+    n, labels = cv2.connectedComponents(binary, connectivity=8)
     if n <= 1:
         return np.zeros(binary.shape, dtype=bool)
-    biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    area = np.bincount(labels.ravel(), minlength=n)
+    biggest = 1 + int(np.argmax(area[1:]))
     return labels == biggest
 
 
