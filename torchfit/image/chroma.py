@@ -53,6 +53,11 @@ class ChromaKeyOptions:
         shadow_min: ... and its brightness is at least this fraction of the screen's.
         despill: remove the key excess from the posture images along the silhouette's edge.
         spill_px: width of that band, pixels.
+        gamma: the frames' encoding gamma, undone before keying (light mixes linearly at the
+            silhouette's edge and in the spill; 1 keys the pixel values as they are).
+        off_screen: where the background frames show no screen (the studio around it), a
+            pixel is person when a channel differs from the frames' mean by more than this
+            (in [0, 1]).
     """
 
     key: tuple[float, float, float] | None = None
@@ -61,6 +66,8 @@ class ChromaKeyOptions:
     shadow_min: float = 0.25
     despill: bool = True
     spill_px: int = 3
+    gamma: float = 1.0
+    off_screen: float = 0.12
 
     def check(self) -> None:
         """Raise :class:`ConfigError` naming the first out-of-range key."""
@@ -70,12 +77,16 @@ class ChromaKeyOptions:
             raise ConfigError(
                 f"segmentation.chroma_key.key: expected [r, g, b] in 0..255, got {self.key}"
             )
-        for name in ("tolerance", "shadow_tolerance", "shadow_min"):
+        for name in ("tolerance", "shadow_tolerance", "shadow_min", "off_screen"):
             value = getattr(self, name)
             if not 0.0 < value < 1.0:
                 raise ConfigError(
                     f"segmentation.chroma_key.{name}: expected a value in (0, 1), got {value}"
                 )
+        if not 0.5 <= self.gamma <= 4.0:
+            raise ConfigError(
+                f"segmentation.chroma_key.gamma: expected a value in [0.5, 4], got {self.gamma}"
+            )
         if self.spill_px < 0:
             raise ConfigError(
                 f"segmentation.chroma_key.spill_px: expected >= 0 pixels, got {self.spill_px}"
@@ -184,18 +195,28 @@ def chroma_key(
             "segmentation.chroma_key.key is not set and there are no background frames to "
             "estimate the key colour from"
         )
-    screen = None
+    key = key.clamp_min(0) ** options.gamma
+    images = images.clamp_min(0) ** options.gamma
+    if background is not None:
+        background = background.clamp_min(0) ** options.gamma
+    screen = off_screen = None
     if background is not None:
         _check("background", background)
-        screen = background.mean(0, keepdim=True)
-        # a pixel where the empty frames show no screen (the studio around it) keys with the
-        # key colour itself
-        q_screen, _, _ = keyness(screen, key)
-        screen = torch.where(q_screen > 0.5, screen, key.to(screen).view(1, 3, 1, 1))
+        mean = background.mean(0, keepdim=True).to(images)
+        # where the empty frames show no screen (the studio around it) the key colour stands
+        # in for the screen, and a plain difference from the empty frames decides
+        q_screen, _, _ = keyness(mean, key)
+        on_screen = q_screen > 0.5
+        screen = torch.where(on_screen, mean, key.to(mean).view(1, 3, 1, 1))
+        moved = (images - mean).abs().amax(1, keepdim=True) > options.off_screen
+        off_screen = ~on_screen & moved
     q, q_rel, brightness = keyness(images, key, screen)
     keyed = q >= options.tolerance
     shadow = (q_rel >= 1.0 - options.shadow_tolerance) & (brightness >= options.shadow_min)
-    return ~(keyed | shadow)
+    person = ~(keyed | shadow)
+    if off_screen is not None:
+        person = torch.where(on_screen, person, off_screen)
+    return person
 
 
 def despill(
