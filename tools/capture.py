@@ -16,6 +16,13 @@ Writes ``SUBJECT_DIR/background/bg01.png`` …, ``poses/pose1.png`` … ``pose6.
 per posture, the still stretches). A posture not found is named in an error; the postures
 found are still written. Only the ``segmentation:`` section of ``--config`` is used.
 
+Live (``--device 0``, or a video file standing in for the camera): the guidance of the first
+paper's section 9 as a web page on the loopback interface only, ``http://127.0.0.1:PORT``
+(``--port``, default 8765; the address is printed): the live image with the target posture's
+template contour and the match score. Step out of view for the first 10 frames (the
+background); a posture is captured when its score stays at least 0.5 for a second, then the
+next one is the target.
+
 Exit codes: 0 all six postures captured; 1 some posture not found (the others written);
 2 bad arguments or config; 3 the outputs cannot be written; 4 the video or camera missing or
 unreadable, or too few empty frames at its start.
@@ -26,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -70,12 +78,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--video", type=Path, help="video file or folder of frames")
-    src.add_argument("--device", help="live capture from a camera (see tools/capture_live.py)")
+    src.add_argument(
+        "--device", help="live: an OpenCV camera number (0) or a video file standing in for one"
+    )
     p.add_argument("--camera", required=True, type=Path, help="camera.yaml of the video")
     p.add_argument("--out", required=True, type=Path, help="the subject folder to write")
     p.add_argument("--height-m", type=float, help="the person's height, metres")
     p.add_argument("--config", type=Path, help="torchfit config YAML (segmentation: section)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--port", type=int, default=8765, help="live: the page's port (0: any free)")
+    p.add_argument(
+        "--linger", type=float, default=0.0, help="live: keep serving this many seconds at the end"
+    )
     args = p.parse_args(argv)
     if args.height_m is not None and not 0.5 < args.height_m < 2.8:
         p.error(f"--height-m must be a person's height in metres, got {args.height_m}")
@@ -86,17 +100,55 @@ def _frame(frames: torch.Tensor, i: int) -> np.ndarray:
     return (frames[i].permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
+def live(args: argparse.Namespace, config: Config) -> int:
+    """``--device``: the guidance page while capturing (torchfit.capture.live)."""
+    from torchfit.body.model import BodyModel
+    from torchfit.capture.live import GuidanceServer, run_live
+
+    try:
+        camera = load_camera(args.camera)
+        model = BodyModel(config.model.template)
+    except TorchfitError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 4
+    source = int(args.device) if str(args.device).isdigit() else str(args.device)
+    try:
+        server = GuidanceServer(args.port)
+    except OSError as exc:
+        print(f"error: cannot serve on 127.0.0.1:{args.port}: {exc.strerror}", file=sys.stderr)
+        return 2
+    print(f"guidance at {server.url}", flush=True)
+    try:
+        captured = run_live(
+            source, camera, model, args.out, server, args.height_m, config.segmentation
+        )
+        time.sleep(max(args.linger, 0.0))
+    except TorchfitError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 4
+    except (OutputError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+    finally:
+        server.close()
+    missing = [k for k in range(1, 7) if k not in captured]
+    if missing:
+        names = ", ".join(f"pose{k} ({POSTURE_NAMES[k - 1]})" for k in missing)
+        print(f"error: not captured: {names}", file=sys.stderr)
+        return 1
+    print(f"wrote {args.out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    if args.device is not None:
-        from torchfit.capture.live import main_live
-
-        return main_live(args)
     try:
         config = load_config(args.config, args.set, schema=Config)
     except TorchfitError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.device is not None:
+        return live(args, config)
     try:
         camera = load_camera(args.camera)
         frames, fps = read_video(args.video)
