@@ -16,7 +16,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["render_board", "random_board_pose", "floor_board_pose"]
+__all__ = ["render_board", "random_board_pose", "floor_board_pose", "board_images"]
 
 
 def _edge(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
@@ -131,3 +131,29 @@ def floor_board_pose(
     R = np.asarray(R_world, float) @ M
     t = np.asarray(t_world, float) - R @ centre
     return cv2.Rodrigues(R)[0].ravel(), t
+
+
+def board_images(
+    K: np.ndarray,
+    dist: np.ndarray,
+    R_world: np.ndarray,
+    t_world: np.ndarray,
+    size: tuple[int, int],
+    cols: int,
+    rows: int,
+    square_m: float,
+    n: int,
+    rng: np.random.Generator,
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """``n`` images of the board held in front of the camera (across 40 to 65 % of the
+    image's width, tilted, turned) and one of it lying on the floor mark, for a camera ``K``,
+    ``dist`` at ``x_cam = R_world x_world + t_world``; (H, W, 3) RGB uint8 each."""
+    K = np.asarray(K, np.float64)
+    width_m = (cols + 2.6) * square_m
+    near, far = (K[0, 0] * width_m / (size[0] * share) for share in (0.65, 0.4))
+    held = []
+    for _ in range(n):
+        rvec, tvec = random_board_pose(rng, K, size, cols, rows, square_m, distance=(near, far))
+        held.append(render_board(K, dist, rvec, tvec, cols, rows, square_m, size, rng))
+    rvec, tvec = floor_board_pose(R_world, t_world, cols, rows, square_m)
+    return held, render_board(K, dist, rvec, tvec, cols, rows, square_m, size, rng)
