@@ -47,16 +47,27 @@ from torchfit.config import Config, load_config  # noqa: E402
 from torchfit.errors import DataError, OutputError, TorchfitError  # noqa: E402
 from torchfit.io.camera import load_camera, save_camera  # noqa: E402
 from torchfit.io.files import write_atomic  # noqa: E402
-from torchfit.io.images import list_images, load_frames, write_image  # noqa: E402
+from torchfit.io.images import list_images, read_image, write_image  # noqa: E402
 
 POSTURE_NAMES = ("stand", "straddle", "side_knee", "t_pose", "cactus", "side_stand")
 
 
 def read_video(source: Path) -> tuple[torch.Tensor, float | None]:
-    """(N, 3, H, W) RGB in [0, 1] and the frame rate (None for a frame folder)."""
+    """(N, 3, H, W) uint8 RGB and the frame rate (None for a frame folder)."""
     if source.is_dir():
-        frames, _ = load_frames(list_images(source))
-        return frames, None
+        paths = list_images(source)
+        if not paths:
+            raise DataError(f"no frames found in {source}")
+        images = []
+        for path in paths:
+            image = read_image(path)
+            if images and image.shape != images[0].shape:
+                raise DataError(
+                    f"frame {path}: {image.shape[1]}x{image.shape[0]} pixels, the first frame "
+                    f"is {images[0].shape[1]}x{images[0].shape[0]}"
+                )
+            images.append(image)
+        return torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous(), None
     if not source.is_file():
         raise DataError(f"video not found: {source}")
     video = cv2.VideoCapture(str(source))
@@ -70,8 +81,7 @@ def read_video(source: Path) -> tuple[torch.Tensor, float | None]:
     video.release()
     if not images:
         raise DataError(f"{source}: not a video OpenCV can read (no frames decoded)")
-    stack = torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2)
-    return stack.float().div_(255.0), fps
+    return torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous(), fps
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -97,7 +107,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def _frame(frames: torch.Tensor, i: int) -> np.ndarray:
-    return (frames[i].permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    return np.ascontiguousarray(frames[i].permute(1, 2, 0).numpy())
 
 
 def live(args: argparse.Namespace, config: Config) -> int:

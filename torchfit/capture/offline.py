@@ -22,7 +22,6 @@ six postures of design.md section 4 in order, holding each still for about a sec
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -82,11 +81,19 @@ class CaptureResult:
     missing: list[int] = field(default_factory=list)
 
 
+def _float(frames: torch.Tensor) -> torch.Tensor:
+    """Frames as float in [0, 1] (uint8 frames are divided by 255)."""
+    if frames.dtype == torch.uint8:
+        return frames.float().div_(255.0)
+    return frames
+
+
 def empty_start(frames: torch.Tensor, options: CaptureOptions) -> int:
-    """How many frames at the start show the empty scene (frames (N, 3, H, W) in [0, 1])."""
-    reference = frames[:MIN_BACKGROUND_FRAMES].median(0).values
+    """How many frames at the start show the empty scene (frames (N, 3, H, W), uint8 or in
+    [0, 1])."""
+    reference = _float(frames[:MIN_BACKGROUND_FRAMES]).median(0).values
     for i in range(frames.shape[0]):
-        changed = (frames[i] - reference).abs().amax(0) > options.change_level
+        changed = (_float(frames[i]) - reference).abs().amax(0) > options.change_level
         if float(changed.float().mean()) > options.changed_fraction:
             return i
     return frames.shape[0]
@@ -208,7 +215,7 @@ def capture_from_frames(
     """Choose the background frames and one frame per posture.
 
     Args:
-        frames: (N, 3, H, W) RGB in [0, 1], the video.
+        frames: (N, 3, H, W) RGB, uint8 or float in [0, 1], the video.
         camera: the calibrated camera (B = 1) of the video.
         model: the template body model.
         height_m: the person's height (None: each template is scaled to the silhouette).
@@ -234,11 +241,11 @@ def capture_from_frames(
             f"{MIN_BACKGROUND_FRAMES} are needed (start recording before stepping in)"
         )
     result = CaptureResult(background=list(range(min(n_empty, options.max_background))))
-    model_bg = fit_background(frames[result.background], segmentation)
+    model_bg = fit_background(_float(frames[result.background]), segmentation)
     masks = []
     bar = progress(frames.shape[0] - n_empty) if progress else None
     for start in range(n_empty, frames.shape[0], 8):
-        batch = frames[start : start + 8]
+        batch = _float(frames[start : start + 8])
         masks.append(segment(batch, model_bg, segmentation).masks[:, 0])
         if bar:
             bar.update(batch.shape[0])
@@ -265,8 +272,3 @@ def capture_from_frames(
             result.chosen[k] = int(where[k - 1, s])
             result.scores[k] = float(table[k - 1, s])
     return result
-
-
-def frame_indices(result: CaptureResult) -> Sequence[int]:
-    """The frames a capture writes: the background frames and the chosen ones."""
-    return [*result.background, *result.chosen.values()]
