@@ -96,6 +96,8 @@ def test_calibration_recovers_a_known_camera(tmp_path, seed):
     assert torch.equal(loaded.K, result.camera.K) and torch.equal(loaded.t, result.camera.t)
     again = calibrate(BOARD, folder / "floor.png", intrinsics=loaded)
     assert again.rms_px is None
+    strict = calibrate(BOARD, folder / "floor.png", intrinsics=loaded, max_rms_px=1e-4)
+    assert len(strict.warnings) == 1 and "floor image reprojection RMS" in strict.warnings[0]
     assert torch.linalg.vector_norm(again.camera.centre - truth.centre) < 0.01
 
 

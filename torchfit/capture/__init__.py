@@ -1,7 +1,8 @@
 """From a real camera to a subject folder: checkerboard calibration with the world frame on the
 floor mark (:mod:`~torchfit.capture.calibrate`), choosing the background and posture frames of
 a capture video (:mod:`~torchfit.capture.offline`) and live guidance served on the loopback
-interface (:mod:`~torchfit.capture.live`)."""
+interface (:mod:`~torchfit.capture.live`). Only the calibration is imported here: the other
+two load the body model, import them where needed."""
 
 from torchfit.capture.calibrate import (
     MIN_BOARD_IMAGES,
@@ -12,13 +13,6 @@ from torchfit.capture.calibrate import (
     find_corners,
     parse_board,
 )
-from torchfit.capture.offline import (
-    CaptureOptions,
-    CaptureResult,
-    capture_from_frames,
-    match_score,
-    template_silhouettes,
-)
 
 __all__ = [
     "MIN_BOARD_IMAGES",
@@ -28,9 +22,4 @@ __all__ = [
     "draw_check",
     "find_corners",
     "parse_board",
-    "CaptureOptions",
-    "CaptureResult",
-    "capture_from_frames",
-    "match_score",
-    "template_silhouettes",
 ]
