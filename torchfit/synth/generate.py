@@ -40,7 +40,7 @@ from torchfit.camera import look_at
 from torchfit.io.camera import save_camera, save_stereo_cameras
 from torchfit.measurements import JOINT_NAMES, measurements_from_joints
 from torchfit.synth.body import AnnyBody, PosedBody, load_anny
-from torchfit.synth.greenscreen import add_spill, green_screen
+from torchfit.synth.greenscreen import add_spill, green_screen, no_green
 from torchfit.synth.hard import HardConditions
 from torchfit.synth.options import SynthConfig
 from torchfit.synth.postures import POSTURES, STEREO_POSTURE, Posture, axis_angle, perturb
@@ -262,6 +262,8 @@ def make_subject(
     if volume < 0:  # make the triangles counter-clockwise seen from outside (outward normals)
         faces = faces[:, ::-1].copy()
     albedo = sample_albedo(body, rng)
+    if cfg.green_screen:
+        albedo = no_green(albedo)
 
     azimuth = rng.uniform(0, 2 * math.pi)
     distance = rng.uniform(*cfg.camera_distance_m)

@@ -1,5 +1,7 @@
 """A green-screen studio for synthetic subjects (``SynthConfig.green_screen``): walls and floor
-one green, nothing on them, and the screen's light spilling onto the person's edge.
+one green, nothing on them, the person dressed in no green (as one is told to dress in front
+of a green screen: green clothes would be keyed out with the screen), and the screen's light
+spilling onto the person's edge.
 
 Spill: light bounced off the screen tints the person where the screen surrounds them; it is
 strongest on the silhouette's edge and fades over ``SPILL_PX`` pixels inside it. Both use no
@@ -14,7 +16,7 @@ import numpy as np
 
 from torchfit.synth.room import Room
 
-__all__ = ["SCREEN_GREEN", "SPILL_PX", "green_screen", "add_spill"]
+__all__ = ["SCREEN_GREEN", "SPILL_PX", "green_screen", "add_spill", "no_green"]
 
 #: The screen's albedo (linear RGB), a typical chroma-key green.
 SCREEN_GREEN = np.array([0.08, 0.42, 0.10])
@@ -53,3 +55,12 @@ def add_spill(colour: np.ndarray, person: np.ndarray, strength: float) -> np.nda
     weight = np.clip(1.0 - (inside - 1.0) / SPILL_PX, 0.0, 1.0) * person
     out = colour + strength * weight[..., None] * SCREEN_GREEN[None, None] * np.array([0, 1, 0])
     return np.clip(out, 0.0, 1.0)
+
+
+def no_green(albedo: np.ndarray) -> np.ndarray:
+    """The albedo (V, 3) with no green-dominant colour: where green exceeds both red and blue
+    it is lowered to 0.8 of the larger of them (teal turns blue, green turns grey-brown)."""
+    other = np.maximum(albedo[:, 0], albedo[:, 2])
+    out = albedo.copy()
+    out[:, 1] = np.where(albedo[:, 1] > other, 0.8 * other, albedo[:, 1])
+    return out

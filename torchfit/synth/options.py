@@ -38,8 +38,9 @@ class SynthConfig:
     exposure_drift: float = 0.0  # per-channel gain drift reaching +-this at the end
     jpeg_quality: list[int] = field(default_factory=list)  # [low, high]: JPEG round trip
     # a green-screen studio (configs/synth_greenscreen.yaml, torchfit.synth.greenscreen):
-    # green walls and floor, nothing on them, and the screen's light spilling onto the
-    # person's edge (spill: the share of the screen's green added on the edge itself)
+    # green walls and floor, nothing on them, no green clothes, and the screen's light
+    # spilling onto the person's edge (spill: the share of the screen's green added on the
+    # edge itself)
     green_screen: bool = False
     spill: float = 0.0
 
