@@ -106,6 +106,7 @@ ALLOWED = {
     "fit": {"body", "camera", "image", "parts", "solver", "viz", "_dual"},
     "eval": {"io", "measurements", "status"},
     "synth": {"camera", "io", "measurements", "viz"},
+    "capture": {"body", "camera", "image", "io", "viz"},
     "config": {"fit", "image", "parts", "solver"},
     "pipeline": {
         "body",

@@ -261,3 +261,21 @@ def test_render_layers_give_the_true_person_and_shadow_masks(tmp_path):
     back = cv2.imread(str(tmp_path / "m" / "pose1.png"), cv2.IMREAD_UNCHANGED)
     assert back.dtype == np.uint8 and back.ndim == 2 and set(np.unique(back)) == {0, 255}
     np.testing.assert_array_equal(back > 0, person)
+
+
+def test_green_screen_room_and_spill():
+    import numpy as np
+
+    from torchfit.synth.greenscreen import SCREEN_GREEN, add_spill, green_screen
+    from torchfit.synth.room import sample_room
+
+    room = sample_room(np.random.default_rng(0), 0.3, 3.5)
+    green_screen(room)
+    assert np.allclose(room.wall_colour, SCREEN_GREEN) and room.boxes == [] and not room.skirting
+    colour = np.full((30, 30, 3), 0.3)
+    person = np.zeros((30, 30), bool)
+    person[5:25, 5:25] = True
+    out = add_spill(colour, person, 0.5)
+    assert out[5, 15, 1] > out[10, 15, 1] >= out[15, 15, 1] == 0.3  # strongest on the edge
+    assert np.array_equal(out[:, :, [0, 2]], colour[:, :, [0, 2]])
+    assert np.array_equal(out[~person], colour[~person])

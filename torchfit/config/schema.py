@@ -15,6 +15,7 @@ from typing import Literal
 
 from torchfit.fit.problem import FitOptions
 from torchfit.fit.stages import StageOptions
+from torchfit.image.chroma import ChromaKeyOptions
 from torchfit.image.segment import SegmentationOptions
 from torchfit.parts.options import PartsOptions
 from torchfit.solver.options import LMOptions
@@ -91,8 +92,24 @@ class ModelConfig:
     scale_max: float = 1.9
 
 
-#: The ``segmentation`` section (the image side's own options).
-SegmentationConfig = SegmentationOptions
+@dataclass(frozen=True)
+class SegmentationConfig(SegmentationOptions):
+    """The ``segmentation`` section: the image side's own options
+    (:class:`torchfit.image.SegmentationOptions`, inherited) and where the silhouettes come
+    from.
+
+    Attributes:
+        method: ``background`` (subtraction against ``background/``, the first paper's),
+            ``masks`` (the subject's own ``masks/pose1`` … ``pose6``: 8-bit, > 127 is the
+            person; no ``background/`` needed), ``chroma_key`` (a coloured screen, the second
+            paper's; ``chroma_key`` below) or ``auto``: a subject's ``masks/`` where it has
+            that folder, background subtraction otherwise.
+        chroma_key: the key colour, tolerances and spill handling
+            (:class:`torchfit.image.ChromaKeyOptions`).
+    """
+
+    method: Literal["auto", "background", "masks", "chroma_key"] = "auto"
+    chroma_key: ChromaKeyOptions = field(default_factory=ChromaKeyOptions)
 
 
 @dataclass(frozen=True)

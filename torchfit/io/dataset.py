@@ -26,6 +26,7 @@ __all__ = [
     "N_POSES",
     "MIN_BACKGROUND_FRAMES",
     "CAPTURE_NAMES",
+    "SEGMENTATION_METHODS",
     "StereoInfo",
     "Subject",
     "load_subject",
@@ -42,6 +43,9 @@ N_POSES = 6
 MIN_BACKGROUND_FRAMES = 5
 #: Capture names of ``truth.json`` ``joints_world``.
 CAPTURE_NAMES: tuple[str, ...] = tuple(f"pose{i}" for i in range(1, N_POSES + 1)) + ("stereo",)
+#: Where the silhouettes come from (``segmentation.method``): ``auto`` takes a subject's own
+#: ``masks/`` where it has them and background subtraction otherwise.
+SEGMENTATION_METHODS: tuple[str, ...] = ("auto", "background", "masks", "chroma_key")
 
 
 @dataclass
@@ -75,6 +79,10 @@ class Subject:
             the path where it was expected).
         truth: the parsed ``truth.json``, or None where absent or invalid.
         stereo: the stereo pair, or None where absent or invalid.
+        masks: the user's silhouettes ``masks/pose1`` … ``masks/pose6`` in order (8-bit,
+            > 127 is the person), or None where the silhouettes do not come from ``masks/``.
+        method: how this subject's silhouettes are made: ``masks``, ``background`` or
+            ``chroma_key`` (``auto`` resolved).
         problems: what is wrong, one message per problem naming the file; empty when usable.
         warnings: what is off but does not prevent fitting (e.g. a bad optional stereo folder).
     """
@@ -86,6 +94,8 @@ class Subject:
     poses: list[Path] = field(default_factory=list)
     truth: dict | None = None
     stereo: StereoInfo | None = None
+    masks: list[Path] | None = None
+    method: str = "background"
     problems: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
 
@@ -252,16 +262,52 @@ def _load_stereo(folder: Path, warnings: list[str]) -> StereoInfo | None:
     return StereoInfo(left, right, bg_left, bg_right, images["left"], images["right"])
 
 
-def load_subject(folder: str | Path) -> Subject:
+def _load_masks(folder: Path, size: tuple[int, int] | None, problems: list[str]) -> list[Path]:
+    """The six ``masks/pose<k>`` files (a missing one is the path where it was expected)."""
+    masks = []
+    for i in range(1, N_POSES + 1):
+        found = _find_image(folder / "masks", f"pose{i}")
+        if found is None:
+            expected = folder / "masks" / f"pose{i}.png"
+            problems.append(f"{expected}: missing mask (masks/ needs pose1 … pose{N_POSES})")
+            masks.append(expected)
+        else:
+            _check_frames([found], size, problems, "mask")
+            masks.append(found)
+    return masks
+
+
+def _resolve_method(folder: Path, method: str) -> str:
+    if method not in SEGMENTATION_METHODS:
+        raise DataError(
+            f"segmentation method: expected one of {', '.join(SEGMENTATION_METHODS)}, "
+            f"got {method!r}"
+        )
+    if method == "auto":
+        return "masks" if (folder / "masks").is_dir() else "background"
+    return method
+
+
+def load_subject(folder: str | Path, method: str = "auto") -> Subject:
     """Read one subject folder; never raises for bad content (see ``Subject.problems``).
 
     Problems (the subject cannot be fitted): missing folder, missing or invalid
-    ``camera.yaml``, fewer than :data:`MIN_BACKGROUND_FRAMES` background frames, a missing
-    posture image, an image whose size differs from the camera's, an invalid ``truth.json``.
-    An invalid optional ``stereo/`` folder is only a warning (``stereo`` is None).
+    ``camera.yaml``, fewer than :data:`MIN_BACKGROUND_FRAMES` background frames (not needed
+    when the silhouettes come from ``masks/``), a missing posture image or mask, an image or
+    mask whose size differs from the camera's, an invalid ``truth.json``. An invalid optional
+    ``stereo/`` folder is only a warning (``stereo`` is None).
+
+    Args:
+        folder: the subject folder.
+        method: ``segmentation.method`` (:data:`SEGMENTATION_METHODS`): ``masks`` needs
+            ``masks/pose1`` … ``pose6``; ``background`` and ``chroma_key`` need the background
+            frames; ``auto`` takes ``masks/`` where the folder exists.
+
+    Raises:
+        DataError: an unknown ``method``.
     """
     folder = Path(folder)
-    subject = Subject(name=folder.name, folder=folder)
+    subject = Subject(name=folder.name, folder=folder, method=_resolve_method(folder, method))
     problems = subject.problems
     if not folder.is_dir():
         problems.append(f"{folder}: subject folder not found")
@@ -272,8 +318,10 @@ def load_subject(folder: str | Path) -> Subject:
         problems.append(str(exc))
     size = subject.camera.image_size if subject.camera is not None else None
 
+    if subject.method == "masks":
+        subject.masks = _load_masks(folder, size, problems)
     subject.background = _frames(folder / "background")
-    if len(subject.background) < MIN_BACKGROUND_FRAMES:
+    if subject.method != "masks" and len(subject.background) < MIN_BACKGROUND_FRAMES:
         problems.append(
             f"{folder / 'background'}: expected >= {MIN_BACKGROUND_FRAMES} background frames, "
             f"found {len(subject.background)}"
@@ -324,7 +372,9 @@ def _read_manifest(path: Path) -> list[Path]:
     return entries
 
 
-def load_dataset(root: str | Path, subjects: list[str] | None = None) -> list[Subject]:
+def load_dataset(
+    root: str | Path, subjects: list[str] | None = None, method: str = "auto"
+) -> list[Subject]:
     """Load every subject of a dataset.
 
     Args:
@@ -332,6 +382,7 @@ def load_dataset(root: str | Path, subjects: list[str] | None = None) -> list[Su
             skipped) or a manifest file with one subject folder per line.
         subjects: keep only these subject names (folder names), in this order; a name that is
             not in the dataset gives a subject with a "not found" problem.
+        method: ``segmentation.method``, as :func:`load_subject`.
 
     Returns:
         One :class:`Subject` per subject folder, sorted by name unless ``subjects`` gives the
@@ -354,4 +405,4 @@ def load_dataset(root: str | Path, subjects: list[str] | None = None) -> list[Su
         by_name = {f.name: f for f in folders}
         base = root if root.is_dir() else root.parent
         folders = [by_name.get(name, base / name) for name in subjects]
-    return [load_subject(f) for f in folders]
+    return [load_subject(f, method) for f in folders]

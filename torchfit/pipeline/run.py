@@ -229,7 +229,7 @@ def run(
     if not config.data.root:
         raise ConfigError("data.root is not set: pass --data DIR or set data.root in the config")
     apply_runtime(config.run)
-    subjects = load_dataset(config.data.root, config.data.subjects)
+    subjects = load_dataset(config.data.root, config.data.subjects, config.segmentation.method)
     if not subjects:
         raise DataError(f"no subject folders found in {config.data.root}")
     model = BodyModel(

@@ -40,6 +40,7 @@ from torchfit.camera import look_at
 from torchfit.io.camera import save_camera, save_stereo_cameras
 from torchfit.measurements import JOINT_NAMES, measurements_from_joints
 from torchfit.synth.body import AnnyBody, PosedBody, load_anny
+from torchfit.synth.greenscreen import add_spill, green_screen, no_green
 from torchfit.synth.hard import HardConditions
 from torchfit.synth.options import SynthConfig
 from torchfit.synth.postures import POSTURES, STEREO_POSTURE, Posture, axis_angle, perturb
@@ -261,6 +262,8 @@ def make_subject(
     if volume < 0:  # make the triangles counter-clockwise seen from outside (outward normals)
         faces = faces[:, ::-1].copy()
     albedo = sample_albedo(body, rng)
+    if cfg.green_screen:
+        albedo = no_green(albedo)
 
     azimuth = rng.uniform(0, 2 * math.pi)
     distance = rng.uniform(*cfg.camera_distance_m)
@@ -269,6 +272,8 @@ def make_subject(
     light = _sample_light(rng, azimuth)
     hard = HardConditions(cfg, seed, index, cfg.background_frames + len(POSTURES))
     light = hard.scene(room, light)  # the hard rooms' conditions (unchanged when all off)
+    if cfg.green_screen:
+        green_screen(room)
     horiz = np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
     centre = horiz * distance + np.array([0.0, 0.0, cam_h])
     target_pt = np.array([*rng.uniform(-0.05, 0.05, 2), rng.uniform(0.95, 1.05)])
@@ -299,6 +304,8 @@ def make_subject(
             layers=True,
             all_surfaces=hard.all_surfaces,
         )
+        if cfg.green_screen:
+            colour = add_spill(colour, person, cfg.spill)
         name = f"pose{posture.index}"
         _write_mask(folder / "truth_masks" / f"{name}.png", person, cfg.png_compression)
         _write_mask(folder / "truth_masks" / f"{name}_shadow.png", cast, cfg.png_compression)

@@ -37,6 +37,12 @@ class SynthConfig:
     white_balance: float = 0.0  # per posture image: per-channel gain within +-this
     exposure_drift: float = 0.0  # per-channel gain drift reaching +-this at the end
     jpeg_quality: list[int] = field(default_factory=list)  # [low, high]: JPEG round trip
+    # a green-screen studio (configs/synth_greenscreen.yaml, torchfit.synth.greenscreen):
+    # green walls and floor, nothing on them, no green clothes, and the screen's light
+    # spilling onto the person's edge (spill: the share of the screen's green added on the
+    # edge itself)
+    green_screen: bool = False
+    spill: float = 0.0
 
     def __post_init__(self) -> None:
         if len(self.image_size) != 2 or min(self.image_size) < 16:
@@ -64,6 +70,8 @@ class SynthConfig:
                 raise ConfigError(
                     f"synth config: key '{key}' must be in [0, 0.5), got {getattr(self, key)}"
                 )
+        if not 0.0 <= self.spill <= 1.0:
+            raise ConfigError(f"synth config: key 'spill' must be in [0, 1], got {self.spill}")
         if not 0 <= self.png_compression <= 9:
             raise ConfigError(
                 f"synth config: key 'png_compression' must be in 0..9, got {self.png_compression}"

@@ -48,6 +48,7 @@ class Room:
     # pictures: ((s0, z0), (s1, z1), colour) rectangles on the back wall
     pattern: WallPattern | None = None  # hard rooms: the walls' pattern (None: plain paint)
     posters: list[Poster] = field(default_factory=list)  # hard rooms: posters, back wall
+    skirting: bool = True  # a light skirting board along the walls (none on a green screen)
 
     @property
     def basis(self) -> np.ndarray:

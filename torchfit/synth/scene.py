@@ -86,7 +86,7 @@ def _wall_albedo(room: Room, a: np.ndarray, z: np.ndarray, back: bool) -> np.nda
     base = room.wall_colour * (1 + 0.03 * _value_noise(room.noise, a, z, 0.5))[..., None]
     if room.pattern is not None:
         base = pattern_albedo(room.pattern, a, z) * (base / room.wall_colour)
-    skirting = (z < 0.09)[..., None]
+    skirting = (z < (0.09 if room.skirting else -1.0))[..., None]
     out = np.where(skirting, np.array([0.92, 0.92, 0.9]), base)
     if back:
         for (s0, z0), (s1, z1), colour in room.pictures:
