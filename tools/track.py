@@ -44,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
         help="--model is a synthetic subject folder: use its true skeleton (truth.json) "
         "instead of a fit (the tracker alone)",
     )
+    parser.add_argument("--overlays", action="store_true", help="write overlay/<frame>.png")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -92,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
                 config,
                 tb,
                 progress=lambda it: tqdm(it, desc="frames", total=max(len(s.frames) for s in seqs)),
+                overlays=args.overlays,
             )
         wall = time.perf_counter() - t0
     except OutputError as exc:

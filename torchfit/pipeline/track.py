@@ -10,8 +10,10 @@ TensorBoard scalars under ``tb/``, and with a truth, ``eval.json`` (mean per-joi
 error, head_top excluded).
 
 The first frame starts from the neutral pose facing the camera, standing where the
-silhouette's lowest point meets the floor; four yaw hypotheses (facing, left side, back,
-right side) are solved as extra batch rows and the best contour kept.
+silhouette's lowest point meets the floor; yaw hypotheses within ±45° of facing the camera
+are solved as extra batch rows and the best contour kept. A silhouette looks the same from
+the front and from the back (left and right swapped), so the person must face the camera,
+roughly, in the first frame; after that the temporal term keeps the side.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import torch
 
 from torchfit.body.bvh import model_motion
 from torchfit.body.model import BodyModel
-from torchfit.camera import Camera, camera_centre, stack_cameras
+from torchfit.camera import Camera, camera_centre, project_points, stack_cameras
 from torchfit.errors import DataError
 from torchfit.fit.person import person_data_from_masks
 from torchfit.image import SegmentationOptions, fit_background, segment
@@ -36,7 +38,7 @@ from torchfit.io.bvh import write_bvh
 from torchfit.io.camera import load_camera
 from torchfit.io.export import write_json
 from torchfit.io.files import make_dirs, write_atomic
-from torchfit.io.images import list_images, load_frames
+from torchfit.io.images import list_images, load_frames, write_image
 from torchfit.measurements import JOINT_NAMES
 from torchfit.track import PoseLayout, TrackOptions, solve_frame, track
 
@@ -56,6 +58,10 @@ _LIMBS = {
     "{s}_thigh": ("{s}_hip", "{s}_knee"),
     "{s}_calf": ("{s}_knee", "{s}_ankle"),
 }
+
+
+#: first-frame yaw hypotheses around facing the camera, radians.
+_TURNS = tuple(math.radians(d) for d in (-45.0, -20.0, 0.0, 20.0, 45.0))
 
 
 @dataclass
@@ -131,7 +137,7 @@ def _masks(seqs: list[Sequence], backgrounds, options: SegmentationOptions):
 
 
 def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
-    """First-frame rows: four yaw hypotheses per sequence, the best contour kept."""
+    """First-frame rows: yaw hypotheses per sequence, the best contour kept."""
     b = scales.shape[0]
     centre = camera_centre(cameras.R, cameras.t).to(model.dtype)
     yaw0 = torch.atan2(centre[:, 1], centre[:, 0])
@@ -147,20 +153,21 @@ def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
         c = centre[i]
         s = -c[2] / d[2] if abs(float(d[2])) > 1e-9 else torch.tensor(0.0, dtype=model.dtype)
         ground = c + s * d
-        for turn in (0.0, math.pi / 2, math.pi, -math.pi / 2):
+        for turn in _TURNS:
             x = torch.zeros(layout.num_params, dtype=model.dtype)
             x[:2] = ground[:2]
             x[5] = yaw0[i] + turn
             rows.append(x)
     x0 = torch.stack(rows)
-    sc = scales.repeat_interleave(4, 0)
-    cams = cameras[torch.arange(b).repeat_interleave(4)]
+    n = len(_TURNS)
+    sc = scales.repeat_interleave(n, 0)
+    cams = cameras[torch.arange(b).repeat_interleave(n)]
     # the root height: the model's lowest point on the floor
     with torch.no_grad():
         t, r, q = PoseLayout.split(x0)
         low = model(sc, q, t, r).vertices[..., 2].min(1).values
     x0[:, 2] -= low
-    person = person_data_from_masks(mask.repeat_interleave(4, 0)[:, None], cams, dtype=model.dtype)
+    person = person_data_from_masks(mask.repeat_interleave(n, 0)[:, None], cams, dtype=model.dtype)
     opts = TrackOptions(
         **{
             **options.__dict__,
@@ -172,8 +179,8 @@ def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
         }
     )
     res = solve_frame(model, sc, person, layout, x0, x0, opts)
-    best = res.contour_rms.reshape(b, 4).argmin(1)
-    return res.x.reshape(b, 4, -1)[torch.arange(b), best]
+    best = res.contour_rms.reshape(b, n).argmin(1)
+    return res.x.reshape(b, n, -1)[torch.arange(b), best]
 
 
 def _joints(model: BodyModel, scales: torch.Tensor, x: torch.Tensor) -> dict[str, np.ndarray]:
@@ -192,6 +199,7 @@ def track_sequences(
     config: TrackConfig,
     tb=None,
     progress=None,
+    overlays: bool = False,
 ) -> list[dict]:
     """Track ``sequences`` together and write each one's outputs to ``outs``.
 
@@ -203,6 +211,7 @@ def track_sequences(
         config: segmentation and tracker options.
         tb: optional :class:`torchfit.pipeline.tensorboard.TensorBoardCallback`.
         progress: wraps the frame iterator.
+        overlays: also write ``overlay/<frame>.png`` (model contour green, person magenta).
 
     Returns:
         Per sequence a summary (frames, statuses, ms per frame, errors with a truth).
@@ -255,6 +264,8 @@ def track_sequences(
                 ]
             )
         write_atomic(out / "track.csv", buf.getvalue())
+        if overlays:
+            _write_overlays(model, scales[i], s, backgrounds[i], x, recs, out, config)
         if tb is not None:
             for rec in recs:
                 tb.add_scalar(f"track/{s.name}/contour_rms", rec.contour_rms, rec.frame)
@@ -273,6 +284,25 @@ def track_sequences(
             write_json(out / "eval.json", summary)
         summaries.append(summary)
     return summaries
+
+
+def _write_overlays(model, scales, seq, background, x, recs, out, config) -> None:
+    from torchfit.viz.overlay import fit_overlay
+    from torchfit.viz.raster import render_silhouette
+
+    cam = seq.camera.to(dtype=model.dtype)
+    t, r, q = PoseLayout.split(x)
+    with torch.no_grad():
+        verts = model(scales.expand(x.shape[0], -1, -1), q, t, r).vertices
+    faces = model.faces.numpy()
+    for f, rec in enumerate(recs):
+        image, _ = load_frames([seq.frames[f]], seq.camera.image_size)
+        person = segment(image, background, config.segmentation).masks[0, 0].numpy()
+        pix = project_points(verts[f : f + 1], cam)[0].numpy()
+        mask = render_silhouette(pix, faces, seq.camera.image_size) > 0
+        rgb = (image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+        label = f"{seq.name} {f:06d} {rec.status} {rec.contour_rms:.1f}px"
+        write_image(out / "overlay" / f"{f:06d}.png", fit_overlay(rgb, person, mask, label))
 
 
 def joint_errors(tracked: list[dict], truth: list[dict]) -> dict:

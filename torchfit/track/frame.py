@@ -49,6 +49,9 @@ class TrackOptions:
             good frame.
         recover_min_px: see ``recover_factor``.
         confidence_px: contour RMS at which the confidence is 0.5.
+        floor_weight: pull of the lowest sole point towards the floor (z = 0), pixels per
+            metre (a soft contact: someone jumping leaves the floor at that cost).
+        min_diag: floor of the solver's scaling (:attr:`torchfit.solver.LMOptions.min_diag`).
         jacobian: ``batched`` (forward differences, all the perturbed rows in one model
             call: the fastest on the CPU) or a solver Jacobian (``forward``, ``numeric``).
     """
@@ -62,6 +65,8 @@ class TrackOptions:
     recover_factor: float = 2.5
     recover_min_px: float = 4.0
     confidence_px: float = 6.0
+    floor_weight: float = 100.0
+    min_diag: float = 1e-6
     jacobian: str = "batched"
 
 
@@ -73,6 +78,7 @@ class PoseLayout:
         kw = {"dtype": model.dtype, "device": model.device}
         inf = torch.full((6,), float("inf"), **kw)
         self.num_params = 6 + q
+        self.floor_weight = options.floor_weight
         self.lower = torch.cat([-inf, model.joint_lower.to(**kw)])
         self.upper = torch.cat([inf, model.joint_upper.to(**kw)])
         self.weights = torch.cat(
@@ -114,7 +120,7 @@ class FrameResult:
 def _pixels(model, scales, camera, x, vertex_index):
     t, r, q = PoseLayout.split(x)
     out = model(scales, q, t, r, vertex_index=vertex_index)
-    return project_points(out.vertices, camera)
+    return project_points(out.vertices, camera), out.vertices
 
 
 class _FrameResidual:
@@ -128,7 +134,12 @@ class _FrameResidual:
         self.prediction = prediction
         self.half = 0.5 / sampler.k
         ep = contour_endpoints(sampler, selection)
-        self.verts = ep.vertices()
+        marks = model.template.landmarks
+        soles = [marks[k] for k in ("l_sole", "r_sole", "l_toe", "r_toe") if k in marks]
+        self.floor_weight = layout.floor_weight if soles else 0.0
+        extra = torch.tensor(soles, dtype=torch.long, device=ep.model_a.device)
+        self.verts = torch.unique(torch.cat([ep.vertices(), extra]))
+        self.soles = torch.searchsorted(self.verts, extra)
         where = lambda idx: torch.searchsorted(self.verts, idx)  # noqa: E731
         self.ma, self.mb = where(ep.model_a), where(ep.model_b)
         self.pa, self.pb = where(ep.person_a), where(ep.person_b)
@@ -138,7 +149,7 @@ class _FrameResidual:
         self.n_person = self.valid.sum(1).clamp_min(1)
 
     def __call__(self, xr: torch.Tensor, index: torch.Tensor):
-        p = _pixels(self.model, self.scales[index], self.camera[index], xr, self.verts)
+        p, world = _pixels(self.model, self.scales[index], self.camera[index], xr, self.verts)
         g = lambda t, i: torch.gather(t, 1, i[..., None].expand(-1, -1, 2))  # noqa: E731
         t = self.mt[index][..., None].to(xr.dtype)
         points = g(p, self.ma[index]) * (1 - t) + g(p, self.mb[index]) * t
@@ -157,8 +168,19 @@ class _FrameResidual:
         e_p = torch.where(valid_p, d_p, torch.zeros_like(d_p))
         e_p = e_p / self.n_person[index, None].to(xr.dtype).sqrt()
         e_t = self.layout.weights * (xr - self.prediction[index])
-        mask = torch.cat([valid_p, valid_m, torch.ones_like(e_t, dtype=torch.bool)], 1)
-        return torch.cat([e_p, e_m, e_t], 1), mask
+        # floor: the lowest sole point on the floor (z = 0), soft
+        z = world[:, self.soles, 2] if len(self.soles) else xr[:, :1] * 0
+        e_f = self.floor_weight * z.min(1, keepdim=True).values
+        mask = torch.cat(
+            [
+                valid_p,
+                valid_m,
+                torch.ones_like(e_t, dtype=torch.bool),
+                torch.ones_like(e_f, dtype=torch.bool),
+            ],
+            1,
+        )
+        return torch.cat([e_p, e_m, e_t, e_f], 1), mask
 
     def jacobian(self, xr: torch.Tensor, index: torch.Tensor):
         """Forward differences, every perturbed copy of the rows in one batched call."""
@@ -206,12 +228,12 @@ def solve_frame(
     camera: Camera = person.camera
     x = layout.clip(x0)
     iterations = torch.zeros(x.shape[0], dtype=torch.long)
-    lm = LMOptions(max_iter=options.iterations, fold_batch=False, min_diag=1.0)
+    lm = LMOptions(max_iter=options.iterations, fold_batch=False, min_diag=options.min_diag)
     cost = torch.zeros(x.shape[0], dtype=x.dtype)
     problem = None
     for _ in range(options.rounds):
         with torch.no_grad():
-            pix = _pixels(model, scales, camera, x, None)
+            pix, _ = _pixels(model, scales, camera, x, None)
         sel = select_contour(
             sampler, pix, person.contours[0], person.valid[0], camera.image_size, 1.0
         )
