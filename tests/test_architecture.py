@@ -106,6 +106,7 @@ ALLOWED = {
     "fit": {"body", "camera", "image", "parts", "solver", "viz", "_dual"},
     "eval": {"io", "measurements", "status"},
     "synth": {"camera", "io", "measurements", "viz"},
+    "track": {"body", "camera", "fit", "image", "solver"},
     "config": {"fit", "image", "parts", "solver"},
     "pipeline": {
         "body",
@@ -118,6 +119,7 @@ ALLOWED = {
         "parts",
         "solver",
         "status",
+        "track",
         "viz",
         "_dual",
     },
