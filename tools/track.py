@@ -40,9 +40,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=None, help="track only the first N frames")
     parser.add_argument(
         "--true-skeleton",
-        action="store_true",
-        help="--model is a synthetic subject folder: use its true skeleton (truth.json) "
-        "instead of a fit (the tracker alone)",
+        default=None,
+        metavar="SUBJECT_DIR",
+        help="a synthetic subject folder: replace the fitted segment lengths by its true ones "
+        "(truth.json), to measure the tracker alone",
     )
     parser.add_argument("--overlays", action="store_true", help="write overlay/<frame>.png")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
@@ -66,13 +67,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
+        template, scales = load_fitted(args.model)
+        model = BodyModel(template)
         if args.true_skeleton:
-            truth = json.loads((Path(args.model) / "truth.json").read_text())
-            model = BodyModel("mpeg4_full")
-            scales = skeleton_scales(model, truth["joints_world"]["pose1"])
-        else:
-            template, scales = load_fitted(args.model)
-            model = BodyModel(template)
+            truth = json.loads((Path(args.true_skeleton) / "truth.json").read_text())
+            scales = skeleton_scales(model, scales, truth["joints_world"]["pose1"])
         order = model.template.segments
         scale_t = torch.tensor([scales[s] for s in order], dtype=torch.float64)
         seqs = [load_sequence(s, args.frames) for s in args.sequence]

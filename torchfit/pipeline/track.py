@@ -324,31 +324,42 @@ def joint_errors(tracked: list[dict], truth: list[dict]) -> dict:
     }
 
 
-def skeleton_scales(model: BodyModel, joints: dict[str, list[float]]) -> dict[str, list[float]]:
-    """Segment scales that give the template a body's true skeleton (a synthetic subject's
-    ``truth.json`` joints of one capture): each limb segment scaled by its true length over
-    the template's, the pelvis across by the hip width, the clavicles by the shoulder width,
-    every other segment by the true back-to-neck length over the template's.
+def skeleton_scales(
+    model: BodyModel, scales: dict[str, list[float]], joints: dict[str, list[float]]
+) -> dict[str, list[float]]:
+    """Fitted scales with a body's true skeleton lengths (a synthetic subject's
+    ``truth.json`` joints of one capture): each limb segment's scale along its bone (z) set
+    so its joint-to-joint length is the true one, the spine segments' z by the true
+    back-to-neck length over the fitted, the pelvis across (y) by the true hip width over the
+    fitted; the segments' thickness stays the fit's.
+
+    Args:
+        model: the body model.
+        scales: the fit's ``segment_scales`` (params.json).
+        joints: true joint positions of one capture.
 
     Returns:
         segment -> [sx, sy, sz], as ``params.json``'s ``segment_scales``.
     """
+    t = model.template
+    sc = torch.tensor([scales[n] for n in t.segments], dtype=model.dtype)
     with torch.no_grad():
-        neutral = model(**model.zeros(1))
-    tj = {k: v[0].numpy() for k, v in model.joint_positions(neutral).items()}
+        zero = {k: v for k, v in model.zeros(1).items() if k != "scales"}
+        fitted = model.joint_positions(model(sc[None], **zero))
+    fj = {k: v[0].numpy() for k, v in fitted.items()}
     true = {k: np.asarray(v, dtype=np.float64) for k, v in joints.items()}
     ratio = lambda a, b: float(  # noqa: E731
-        np.linalg.norm(true[b] - true[a]) / np.linalg.norm(tj[b] - tj[a])
+        np.linalg.norm(true[b] - true[a]) / np.linalg.norm(fj[b] - fj[a])
     )
-    base = ratio("back", "neck")
-    out = {s: [base] * 3 for s in model.template.segments}
+    out = {n: list(map(float, sc[i])) for i, n in enumerate(t.segments)}
     for side in ("l", "r"):
         for seg, (a, b) in _LIMBS.items():
             name = seg.format(s=side)
             if name in out:
-                out[name] = [ratio(a.format(s=side), b.format(s=side))] * 3
-        if f"{side}_clavicle" in out:
-            out[f"{side}_clavicle"] = [ratio("l_shoulder", "r_shoulder")] * 3
-    pelvis = model.template.segments[0]
-    out[pelvis] = [ratio("l_hip", "r_hip"), base, base]
+                out[name][2] *= ratio(a.format(s=side), b.format(s=side))
+    spine = ratio("back", "neck")
+    for name in t.segments:
+        if t.parents[t.segments.index(name)] < 0 or name in ("l5", "t10", "t1", "torso"):
+            out[name][2] *= spine
+    out[t.segments[0]][1] *= ratio("l_hip", "r_hip")
     return out
