@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     outs = [out] if len(seqs) == 1 else [out / f"{k:02d}_{s.name}" for k, s in enumerate(seqs)]
     try:
         out.mkdir(parents=True, exist_ok=True)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         with TensorBoardCallback(out / "tb", "track") as tb:
             summaries = track_sequences(
                 model,
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
                 progress=lambda it: tqdm(it, desc="frames", total=max(len(s.frames) for s in seqs)),
                 overlays=args.overlays,
             )
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     except OutputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 3
@@ -107,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     frames = sum(s["frames"] for s in summaries)
     report = {
         "wall_s": round(wall, 2),
+        "cpu_s": round(cpu, 2),
         "frames": frames,
         "fps": round(frames / wall, 2),
         "sequences": [

@@ -167,7 +167,12 @@ def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
         t, r, q = PoseLayout.split(x0)
         low = model(sc, q, t, r).vertices[..., 2].min(1).values
     x0[:, 2] -= low
-    person = person_data_from_masks(mask.repeat_interleave(n, 0)[:, None], cams, dtype=model.dtype)
+    person = person_data_from_masks(
+        mask.repeat_interleave(n, 0)[:, None],
+        cams,
+        stride=options.contour_stride,
+        dtype=model.dtype,
+    )
     opts = TrackOptions(
         **{
             **options.__dict__,

@@ -51,6 +51,7 @@ class TrackOptions:
         confidence_px: contour RMS at which the confidence is 0.5.
         floor_weight: pull of the lowest sole point towards the floor (z = 0), pixels per
             metre (a soft contact: someone jumping leaves the floor at that cost).
+        contour_stride: use every n-th person contour pixel in e_P.
         min_diag: floor of the solver's scaling (:attr:`torchfit.solver.LMOptions.min_diag`).
         jacobian: ``batched`` (forward differences, all the perturbed rows in one model
             call: the fastest on the CPU) or a solver Jacobian (``forward``, ``numeric``).
@@ -67,6 +68,7 @@ class TrackOptions:
     confidence_px: float = 6.0
     floor_weight: float = 100.0
     min_diag: float = 1e-6
+    contour_stride: int = 3
     jacobian: str = "batched"
 
 

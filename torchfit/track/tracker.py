@@ -90,7 +90,9 @@ def track(
         it = progress(it)
     for f, mask in enumerate(it):
         t0 = time.perf_counter()
-        person = person_data_from_masks(mask[:, None], cameras, dtype=model.dtype)
+        person = person_data_from_masks(
+            mask[:, None], cameras, stride=options.contour_stride, dtype=model.dtype
+        )
         pred = layout.clip(2 * prev - prev2)
         res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)
         status = ["ok"] * b
@@ -101,7 +103,9 @@ def track(
         bad = [i for i in range(b) if float(res.contour_rms[i]) > limit[i]]
         if bad:
             idx = torch.tensor(bad)
-            sub = person_data_from_masks(mask[idx][:, None], cameras[idx], dtype=model.dtype)
+            sub = person_data_from_masks(
+                mask[idx][:, None], cameras[idx], stride=options.contour_stride, dtype=model.dtype
+            )
             again = solve_frame(
                 model,
                 scales[idx],
