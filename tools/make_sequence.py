@@ -32,6 +32,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--start", type=int, default=0, help="first clip frame")
     parser.add_argument("--step", type=int, default=1, help="clip frames per rendered frame")
     parser.add_argument("--seed", type=int, required=True, help="body, room and camera seed")
+    parser.add_argument(
+        "--max-travel",
+        type=float,
+        default=0.6,
+        help="largest horizontal distance (m) of the hips from their start; a clip that "
+        "travels further is shrunk horizontally to stay in view",
+    )
     parser.add_argument("--config", default=None, help="YAML file of SynthConfig keys")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args(argv)
@@ -50,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
             step=args.step,
             cfg=cfg,
             progress=lambda r: tqdm(r, desc="frames"),
+            max_travel_m=args.max_travel,
         )
     except TorchfitError as exc:
         print(f"error: {exc}", file=sys.stderr)

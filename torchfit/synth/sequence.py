@@ -13,8 +13,10 @@
 Placement: the torso moves as the capture's (its frame from the hips and the neck); the clip is
 turned about the vertical so that the body faces the camera at its first frame (plus a random
 turn within ±25°), its hip trajectory is scaled by the ratio of the body's leg length to the
-capture's, starts above the origin, and the whole clip is lifted so that the body's lowest
-point over the clip is on the floor.
+capture's, starts above the origin, and is shrunk horizontally (the same factor for the whole
+clip) until it stays within ``max_travel_m`` of its start, so the person stays in the camera's
+view (a clip that travels further is played more in place, the feet sliding somewhat); the
+whole clip is lifted so that the body's lowest point over the clip is on the floor.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ def make_sequence(
     cfg: SynthConfig | None = None,
     model: Any = None,
     progress: Callable[[Iterable[int]], Iterable[int]] | None = None,
+    max_travel_m: float = 0.6,
 ) -> dict:
     """Write ``<out>/subject`` and ``<out>/sequence`` (see the module doc).
 
@@ -78,6 +81,7 @@ def make_sequence(
         cfg: synthesis options (defaults when None).
         model: an anny model.
         progress: wraps the frame indices (e.g. ``tqdm``).
+        max_travel_m: the largest horizontal distance of the hips from their start.
 
     Returns:
         A summary (fps, frames, clip range, subject summary).
@@ -113,12 +117,15 @@ def make_sequence(
     turn = scene.facing - heading + math.radians(rng.uniform(-_TURN_DEG, _TURN_DEG))
     yaw = axis_angle((0, 0, 1), turn)
     origin = clip_joints[0]["back"] * np.array([1.0, 1.0, 0.0])
+    travel = max(float(np.linalg.norm((j["back"] - origin)[:2])) * ratio for j in clip_joints)
+    shrink = min(1.0, max_travel_m / travel) if travel > 0 else 1.0
+    squash = np.array([shrink, shrink, 1.0])
     posed_frames = []
     for joints in clip_joints:
         frame, segments = retarget(joints)
         posed = body.pose({}, segments)
         rot = yaw @ frame
-        hips = yaw @ (ratio * (joints["back"] - origin))
+        hips = yaw @ (squash * ratio * (joints["back"] - origin))
         verts = (posed.vertices - posed.joints["back"]) @ rot.T + hips
         named = {k: rot @ (v - posed.joints["back"]) + hips for k, v in posed.joints.items()}
         posed_frames.append((verts, named))
@@ -159,5 +166,6 @@ def make_sequence(
         "step": step,
         "frames": frames,
         "fps": fps,
+        "horizontal_shrink": round(shrink, 3),
         "subject": summary,
     }

@@ -9,8 +9,9 @@ prediction ``2 x_{t-1} - x_{t-2}``.
 Recovery: a row whose contour RMS exceeds ``recover_factor`` times its sequence's running
 median of good frames (and at least ``recover_min_px``) is solved again from its last good
 frame, with no temporal pull; the frame's status is ``recovered`` when that brings it back
-under the threshold, ``uncertain`` otherwise (its velocity is then reset, so one bad frame
-does not throw the next ones). ``confidence = 1 / (1 + (rms / confidence_px)²)``: a single
+under the threshold, ``uncertain`` otherwise; after either the velocity is reset (the next
+frame starts from this pose, not an extrapolation of a bad one), so one bad frame does not
+throw the next ones. ``confidence = 1 / (1 + (rms / confidence_px)²)``: a single
 camera cannot tell some poses apart (an arm in front of or behind the body), and the contour
 RMS cannot either; the confidence says how well the silhouette is explained, not which of
 those poses is right.
