@@ -16,7 +16,8 @@ from torchfit.io.bvh import euler_to_matrix, read_bvh, write_bvh
 bvhio = pytest.importorskip("bvhio")
 glm = pytest.importorskip("glm")
 
-CMU = Path(os.environ.get("TORCHFIT_SHARED", "/work/shared")) / "data" / "cmu-mocap-sample"
+REPO = Path(__file__).resolve().parents[1]
+CMU = Path(os.environ.get("TORCHFIT_SHARED", REPO / ".." / "shared")) / "data" / "cmu-mocap-sample"
 
 
 def _bvhio_world(path: Path, frame: int) -> dict[str, np.ndarray]:

@@ -14,7 +14,7 @@ from torchfit.io.bvh import read_bvh
 from torchfit.synth.mocap import load_mocap, retarget
 
 REPO = Path(__file__).resolve().parents[1]
-CMU = Path(os.environ.get("TORCHFIT_SHARED", "/work/shared")) / "data" / "cmu-mocap-sample"
+CMU = Path(os.environ.get("TORCHFIT_SHARED", REPO / ".." / "shared")) / "data" / "cmu-mocap-sample"
 needs_cmu = pytest.mark.skipif(not (CMU / "01_01.bvh").is_file(), reason="no shared CMU data")
 
 
