@@ -3,6 +3,7 @@ recovery after a corrupted frame, and batching."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -153,3 +154,45 @@ def test_tracker_recovers_after_a_corrupted_frame(model, camera):
     # ... and the tracker is back within a few frames of it, with no frame lost afterwards
     assert err[8:].max() < 60, err
     assert all(s == "ok" for s in status[8:]), status
+
+
+def test_a_video_tracks_like_its_frames(model, camera, tmp_path):
+    """The same frames as PNG files and as a (lossless) video give the same track."""
+    import cv2
+
+    from torchfit.io.camera import save_camera
+    from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences
+
+    layout = PoseLayout(model, TrackOptions())
+    xs = torch.stack(
+        [_pose(model, layout, camera, {"l_shoulder_abduct": 0.3 + 0.1 * k}) for k in range(3)]
+    )
+    masks = _masks(model, camera[[0] * 3], xs).numpy()
+    folder = tmp_path / "seq"
+    (folder / "background").mkdir(parents=True)
+    (folder / "frames").mkdir()
+    save_camera(camera, folder / "camera.yaml")
+    rng = np.random.default_rng(0)
+    bg = (60 + rng.integers(0, 3, (SIZE[1], SIZE[0], 3))).astype(np.uint8)
+    for i in range(5):
+        cv2.imwrite(str(folder / "background" / f"bg{i:02d}.png"), bg)
+    video = cv2.VideoWriter(str(tmp_path / "clip.avi"), cv2.VideoWriter_fourcc(*"FFV1"), 25, SIZE)
+    for k, m in enumerate(masks):
+        frame = bg.copy()
+        frame[m] = (200, 150, 90)
+        cv2.imwrite(str(folder / "frames" / f"{k:06d}.png"), frame)
+        video.write(frame)
+    video.release()
+    if not (tmp_path / "clip.avi").stat().st_size:
+        pytest.skip("this OpenCV build cannot write FFV1 video")
+    cfg = TrackConfig(track=TrackOptions(iterations=3, rounds=1))
+    scales = torch.ones(model.num_segments, 3, dtype=torch.float64)
+    outs = [tmp_path / "png", tmp_path / "video"]
+    seqs = [load_sequence(folder), load_sequence(folder, video=tmp_path / "clip.avi")]
+    assert seqs[1].num_frames == 3
+    track_sequences(model, scales, seqs[:1], outs[:1], cfg)
+    track_sequences(model, scales, seqs[1:], outs[1:], cfg)
+    a = (outs[0] / "track.csv").read_text().splitlines()
+    b = (outs[1] / "track.csv").read_text().splitlines()
+    assert len(a) == len(b) == 4
+    assert [r.split(",")[5] for r in a] == [r.split(",")[5] for r in b]  # same contour RMS

@@ -5,9 +5,10 @@
 
 ``--model`` is a fitted subject folder (its ``params.json`` gives the template and the segment
 scales, which stay fixed). Each ``SEQ_DIR`` holds ``camera.yaml``, ``background/*.png``,
-``frames/000000.png`` … and optionally ``truth.json``. Several sequences are tracked together,
-one frame per batch row. Writes per sequence ``OUT_DIR/<k>_<name>/`` (``OUT_DIR`` itself for a
-single sequence): ``joints_world.json``, ``motion.bvh``, ``track.csv`` and, with a truth,
+``frames/000000.png`` … (or ``--video FILE``, one per sequence) and optionally ``truth.json``.
+Several sequences are tracked together, one frame per batch row. Writes per sequence
+``OUT_DIR/<k>_<name>/`` (``OUT_DIR`` itself for a single sequence): ``joints_world.json``,
+``motion.bvh``, ``track.csv``, ``overlay/`` with ``--overlays`` and, with a truth,
 ``eval.json``; TensorBoard scalars in ``OUT_DIR/tb``.
 
 Exit codes: 0 ok, 1 a sequence lost frames (status ``uncertain``), 2 bad arguments or config,
@@ -36,6 +37,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--model", required=True, help="fitted subject folder (params.json)")
     parser.add_argument("--sequence", action="append", required=True, help="sequence folder")
+    parser.add_argument(
+        "--video",
+        action="append",
+        default=None,
+        help="read a sequence's frames from this video instead of its frames/ (one per "
+        "--sequence, in order)",
+    )
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--frames", type=int, default=None, help="track only the first N frames")
     parser.add_argument(
@@ -74,7 +82,13 @@ def main(argv: list[str] | None = None) -> int:
             scales = skeleton_scales(model, scales, truth["joints_world"]["pose1"])
         order = model.template.segments
         scale_t = torch.tensor([scales[s] for s in order], dtype=torch.float64)
-        seqs = [load_sequence(s, args.frames) for s in args.sequence]
+        videos = args.video or [None] * len(args.sequence)
+        if len(videos) != len(args.sequence):
+            print("error: give one --video per --sequence", file=sys.stderr)
+            return 2
+        seqs = [
+            load_sequence(s, args.frames, v) for s, v in zip(args.sequence, videos, strict=True)
+        ]
     except (DataError, KeyError, OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 4
@@ -91,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
                 outs,
                 config,
                 tb,
-                progress=lambda it: tqdm(it, desc="frames", total=max(len(s.frames) for s in seqs)),
+                progress=lambda it: tqdm(it, desc="frames", total=max(s.num_frames for s in seqs)),
                 overlays=args.overlays,
             )
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0

@@ -22,6 +22,7 @@ import csv
 import io
 import json
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,6 +40,7 @@ from torchfit.io.camera import load_camera
 from torchfit.io.export import write_json
 from torchfit.io.files import make_dirs, write_atomic
 from torchfit.io.images import list_images, load_frames, write_image
+from torchfit.io.video import read_video, video_frame_count
 from torchfit.measurements import JOINT_NAMES
 from torchfit.track import PoseLayout, TrackOptions, solve_frame, track
 
@@ -74,7 +76,7 @@ class TrackConfig:
 
 @dataclass
 class Sequence:
-    """A sequence folder."""
+    """A sequence folder (its frames as images, or a video file)."""
 
     name: str
     camera: Camera
@@ -82,6 +84,21 @@ class Sequence:
     frames: list[Path]
     fps: float
     truth: list[dict] | None
+    video: Path | None = None
+    video_frames: int = 0
+
+    @property
+    def num_frames(self) -> int:
+        """The number of frames to track."""
+        return self.video_frames if self.video is not None else len(self.frames)
+
+    def images(self) -> Iterator[torch.Tensor]:
+        """The frames in order, each (1, 3, H, W) RGB in [0, 1]."""
+        if self.video is None:
+            for path in self.frames:
+                yield load_frames([path], self.camera.image_size)[0]
+            return
+        yield from read_video(self.video, self.camera.image_size, self.video_frames)
 
 
 def load_fitted(folder: str | Path) -> tuple[str, torch.Tensor]:
@@ -102,38 +119,52 @@ def load_fitted(folder: str | Path) -> tuple[str, torch.Tensor]:
     return template, scales
 
 
-def load_sequence(folder: str | Path, max_frames: int | None = None) -> Sequence:
+def load_sequence(
+    folder: str | Path, max_frames: int | None = None, video: str | Path | None = None
+) -> Sequence:
     """Read a sequence folder's layout (images are read while tracking).
 
+    Args:
+        folder: the sequence folder.
+        max_frames: track only the first frames.
+        video: a video file to read the frames from instead of ``frames/``.
+
     Raises:
-        DataError: a part is missing.
+        DataError: a part is missing or the video cannot be read.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise DataError(f"sequence folder not found: {folder}")
     camera = load_camera(folder / "camera.yaml")
     background = list_images(folder / "background")
-    frames = list_images(folder / "frames")
-    if not background or not frames:
-        raise DataError(f"{folder}: needs background/*.png and frames/*.png")
+    frames = [] if video is not None else list_images(folder / "frames")
+    if not background or (video is None and not frames):
+        raise DataError(f"{folder}: needs background/*.png and frames/*.png (or a video)")
+    count = 0
+    if video is not None:
+        count = video_frame_count(video)
+        if max_frames is not None:
+            count = min(count, max_frames)
     truth, fps = None, 25.0
     if (folder / "truth.json").is_file():
         doc = json.loads((folder / "truth.json").read_text())
         truth, fps = doc.get("joints_world"), float(doc.get("fps", fps))
     if max_frames is not None:
         frames = frames[:max_frames]
-    return Sequence(folder.name, camera, background, frames, fps, truth)
+    path = Path(video) if video is not None else None
+    return Sequence(folder.name, camera, background, frames, fps, truth, path, count)
 
 
 def _masks(seqs: list[Sequence], backgrounds, options: SegmentationOptions):
     """Per frame, (B, H, W) silhouettes (a finished sequence repeats its last frame)."""
-    n = max(len(s.frames) for s in seqs)
+    n = max(s.num_frames for s in seqs)
+    sources = [s.images() for s in seqs]
+    last: list[torch.Tensor | None] = [None] * len(seqs)
     for f in range(n):
-        out = []
-        for s, bg in zip(seqs, backgrounds, strict=True):
-            image, _ = load_frames([s.frames[min(f, len(s.frames) - 1)]], s.camera.image_size)
-            out.append(segment(image, bg, options).masks[0, 0])
-        yield torch.stack(out)
+        for i, (s, bg) in enumerate(zip(seqs, backgrounds, strict=True)):
+            if f < s.num_frames:
+                last[i] = segment(next(sources[i]), bg, options).masks[0, 0]
+        yield torch.stack(last)
 
 
 def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
@@ -242,7 +273,7 @@ def track_sequences(
     records = track(model, scales, cameras, frames_again(), start, config.track, progress)
     summaries = []
     for i, (s, out) in enumerate(zip(sequences, outs, strict=True)):
-        recs = records[i][: len(s.frames)]
+        recs = records[i][: s.num_frames]
         make_dirs(out)
         x = torch.stack([r.x for r in recs])
         joints = _joints(model, scales[i], x)
@@ -300,8 +331,7 @@ def _write_overlays(model, scales, seq, background, x, recs, out, config) -> Non
     with torch.no_grad():
         verts = model(scales.expand(x.shape[0], -1, -1), q, t, r).vertices
     faces = model.faces.numpy()
-    for f, rec in enumerate(recs):
-        image, _ = load_frames([seq.frames[f]], seq.camera.image_size)
+    for f, (rec, image) in enumerate(zip(recs, seq.images(), strict=False)):
         person = segment(image, background, config.segmentation).masks[0, 0].numpy()
         pix = project_points(verts[f : f + 1], cam)[0].numpy()
         mask = render_silhouette(pix, faces, seq.camera.image_size) > 0
