@@ -107,6 +107,7 @@ ALLOWED = {
     "eval": {"io", "measurements", "status"},
     "synth": {"camera", "io", "measurements", "viz"},
     "capture": {"body", "camera", "image", "io", "viz"},
+    "track": {"body", "camera", "fit", "image", "solver"},
     "config": {"fit", "image", "parts", "solver"},
     "pipeline": {
         "body",
@@ -119,6 +120,7 @@ ALLOWED = {
         "parts",
         "solver",
         "status",
+        "track",
         "viz",
         "_dual",
     },

@@ -74,6 +74,7 @@ def test_fit_cli_writes_outputs_and_survives_a_bad_subject(dataset, tmp_path):
             "measurements.json",
             "params.json",
             "model.urdf",
+            "model.bvh",
             "model.glb",
             *(f"overlay_pose{i}.png" for i in range(1, 7)),
         ):

@@ -145,8 +145,7 @@ def _message(error: dict, schema: type, source: str) -> str:
         return f"{source}: key '{key}' must be one of {choices}, got {value!r}"
     if kind in _EXPECTS:
         return (
-            f"{source}: key '{key}' expects {_EXPECTS[kind]}, "
-            f"got {type(value).__name__} {value!r}"
+            f"{source}: key '{key}' expects {_EXPECTS[kind]}, got {type(value).__name__} {value!r}"
         )
     if kind == "value_error":
         text = str(error.get("ctx", {}).get("error", error["msg"]))

@@ -131,5 +131,3 @@ def plot_fitted_vs_true(
     if not cv2.imwrite(str(path), grid):
         raise DataError(f"{path}: cannot write the PNG")
     return grid
-
-

@@ -279,6 +279,4 @@ class ResidualLayout:
 
     def per_pose_quality(self, r: torch.Tensor) -> dict[int, tuple[float, float]]:
         """Posture -> (RMS of e_P, e_M) in pixels for one residual row ``r`` (M,)."""
-        return {
-            j: (float(r[self.e_p(j)].norm()), float(r[self.e_m(j)])) for j in self.poses
-        }
+        return {j: (float(r[self.e_p(j)].norm()), float(r[self.e_m(j)])) for j in self.poses}

@@ -96,9 +96,7 @@ class Poser:
         self.soles = [model.template.landmarks["l_sole"], model.template.landmarks["r_sole"]]
         self.nominal = nominal_angles(model, list(layout.poses))
         facing = facing_yaw(camera_centres)
-        self.base_yaw = {
-            j: facing + math.radians(POSTURES[j - 1].turn_deg) for j in layout.poses
-        }
+        self.base_yaw = {j: facing + math.radians(POSTURES[j - 1].turn_deg) for j in layout.poses}
 
     def state(self, full: torch.Tensor, j: int, rows: torch.Tensor):
         """Scales, angles and root of posture j for parameter rows ``full`` (N, P).

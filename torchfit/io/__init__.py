@@ -1,6 +1,7 @@
 """Input and output: camera files, images and masks, datasets, meshes and exports (trimesh
 lives here)."""
 
+from torchfit.io.bvh import Motion, read_bvh, write_bvh
 from torchfit.io.camera import (
     camera_from_dict,
     camera_to_dict,
@@ -44,4 +45,7 @@ __all__ = [
     "export_urdf",
     "export_mesh",
     "write_json",
+    "Motion",
+    "read_bvh",
+    "write_bvh",
 ]

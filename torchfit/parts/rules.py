@@ -70,6 +70,7 @@ __all__ = [
     "RULE_NAMES",
 ]
 
+
 def _arc_contains(t0: float, t1: float, t: np.ndarray | float) -> np.ndarray:
     """Whether ``t`` lies on the arc running forwards from ``t0`` to ``t1`` (mod 1)."""
     return np.mod(np.asarray(t) - t0, 1.0) <= np.mod(t1 - t0, 1.0)

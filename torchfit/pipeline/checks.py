@@ -69,8 +69,7 @@ def proportion_flags(
         ratio = measurements[key] / height
         if not low <= ratio <= high:
             flags.append(
-                f"{key[:-2]} / height {ratio:.3f} outside {low:.3f}-{high:.3f} "
-                f"(ANSUR II, widened)"
+                f"{key[:-2]} / height {ratio:.3f} outside {low:.3f}-{high:.3f} (ANSUR II, widened)"
             )
     return flags
 

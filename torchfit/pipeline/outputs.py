@@ -20,10 +20,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchfit.body.bvh import model_motion
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import POSTURES
 from torchfit.fit.model_contour import ContourSelection
 from torchfit.fit.problem import SilhouetteFit
+from torchfit.io.bvh import write_bvh
 from torchfit.io.export import export_mesh, export_urdf
 from torchfit.io.files import remove_files, remove_temporary, write_atomic
 from torchfit.io.images import write_image
@@ -52,6 +54,7 @@ OUTPUT_FILES = (
     "measurements.json",
     "params.json",
     "model.urdf",
+    "model.bvh",
     "template.json",
     "model.glb",
     "model.obj",
@@ -174,7 +177,9 @@ def write_overlays(
 
 
 def write_model(model: BodyModel, scales: torch.Tensor, folder: Path, mesh_format: str) -> None:
-    """The fitted body: model.urdf + meshes/, and the neutral-pose mesh ``model.<format>``.
+    """The fitted body: model.urdf + meshes/, its skeleton in the neutral pose as
+    ``model.bvh`` (its own segment lengths, for binding in an animation tool), and the
+    neutral-pose mesh ``model.<format>``.
 
     Args:
         model: the body model.
@@ -183,6 +188,7 @@ def write_model(model: BodyModel, scales: torch.Tensor, folder: Path, mesh_forma
         mesh_format: ``glb`` or ``obj``.
     """
     export_urdf(model, scales, folder)
+    write_bvh(folder / "model.bvh", model_motion(model, scales))
     neutral = model(scales[None], **{k: v for k, v in model.zeros(1).items() if k != "scales"})
     export_mesh(neutral.vertices[0], model.faces, folder / f"model.{mesh_format}")
 

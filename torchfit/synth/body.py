@@ -176,20 +176,29 @@ class AnnyBody:
                 local[j] = parent_world.T @ fix @ world[j]
         return local
 
-    def pose(self, angles: dict[str, float]) -> PosedBody:
+    def pose(
+        self, angles: dict[str, float], segments: dict[str, np.ndarray] | None = None
+    ) -> PosedBody:
         """The body in the joint angles ``angles`` (degrees, see torchfit.synth.postures).
+
+        Args:
+            angles: joint angles in degrees.
+            segments: instead of ``angles``, the limb segments' local rotations directly, as
+                :func:`torchfit.synth.postures.segment_rotations` gives them
+                (``{"l_upper_arm": (3, 3), …}``; a missing segment keeps its neutral pose).
 
         Returns:
             A :class:`PosedBody` in anny's frame.
         """
-        seg = segment_rotations(angles)
+        seg = segment_rotations(angles) if segments is None else segments
         neutral_world = self._world_rotations(self._neutral)
         local: dict[int, np.ndarray] = {}
         # posture rotations act in the neutral frame: Q_c = Q_p P_c, world = Q_c N_c
         posture_local: dict[int, np.ndarray] = {}
         for side, s in (("l", "L"), ("r", "R")):
             for name, (bone, _) in SEGMENT_BONES.items():
-                posture_local[self.index[bone.format(s=s)]] = seg[f"{side}_{name}"]
+                if f"{side}_{name}" in seg:
+                    posture_local[self.index[bone.format(s=s)]] = seg[f"{side}_{name}"]
         q = self._world_rotations(posture_local)
         world = q @ neutral_world
         for j, p in enumerate(self.parents):

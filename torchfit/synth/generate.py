@@ -29,6 +29,7 @@ import json
 import logging
 import math
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +48,14 @@ from torchfit.synth.postures import POSTURES, STEREO_POSTURE, Posture, axis_angl
 from torchfit.synth.scene import Light, Room, finish, render, sample_camera, sample_room
 from torchfit.synth.subject import body_with_height, sample_albedo, sample_phenotype
 
-__all__ = ["SynthConfig", "make_subject", "make_subjects", "sample_phenotype"]
+__all__ = [
+    "SynthConfig",
+    "SubjectScene",
+    "make_subject",
+    "make_subjects",
+    "sample_phenotype",
+    "subject_scene",
+]
 
 log = logging.getLogger(__name__)
 
@@ -222,30 +230,29 @@ def _write_stereo(
     return _joints_json(posed)
 
 
-def make_subject(
-    folder: str | Path,
-    seed: int,
-    index: int,
-    cfg: SynthConfig | None = None,
-    model: Any = None,
-    masks_only: bool = False,
-) -> dict:
-    """Generate and write one subject folder.
+@dataclass
+class SubjectScene:
+    """The random draws of subject ``index`` of seed ``seed`` before its captures: body,
+    colours, room, light, camera (``rng`` is left where the captures continue)."""
 
-    Args:
-        folder: the subject folder to write (created).
-        seed, index: the subject is drawn from ``default_rng([seed, index])``.
-        cfg: options (defaults when None).
-        model: an anny model (default: :func:`torchfit.synth.body.load_anny`).
-        masks_only: write only ``truth_masks/`` (and ``stereo/truth_masks/``), the same files
-            a full run writes, for a subject generated before the masks existed; images,
-            cameras, ``truth.json`` and ``synth.json`` are left as they are.
+    rng: np.random.Generator
+    body: AnnyBody
+    faces: np.ndarray
+    albedo: np.ndarray
+    size: tuple[int, int]
+    sex: str
+    phenotype: Any
+    azimuth: float
+    room: Room
+    light: Light
+    hard: HardConditions
+    camera: Any
+    facing: float
 
-    Returns:
-        A summary: phenotype, sex, camera azimuth and the truth measurements.
-    """
-    cfg = cfg or SynthConfig()
-    folder = Path(folder)
+
+def subject_scene(seed: int, index: int, cfg: SynthConfig, model: Any = None) -> SubjectScene:
+    """Draw subject ``index`` of seed ``seed``: the same body, room, light and camera as
+    :func:`make_subject` (which calls it), e.g. to film that body in motion."""
     rng = np.random.default_rng([seed, index])
     size = (int(cfg.image_size[0]), int(cfg.image_size[1]))
     phen, sex = sample_phenotype(rng)
@@ -279,6 +286,40 @@ def make_subject(
     target_pt = np.array([*rng.uniform(-0.05, 0.05, 2), rng.uniform(0.95, 1.05)])
     camera = sample_camera(rng, centre, target_pt, size, rng.uniform(2.6, 2.9))
     facing = math.atan2(centre[1], centre[0])
+
+    return SubjectScene(
+        rng, body, faces, albedo, size, sex, phen, azimuth, room, light, hard, camera, facing
+    )
+
+
+def make_subject(
+    folder: str | Path,
+    seed: int,
+    index: int,
+    cfg: SynthConfig | None = None,
+    model: Any = None,
+    masks_only: bool = False,
+) -> dict:
+    """Generate and write one subject folder.
+
+    Args:
+        folder: the subject folder to write (created).
+        seed, index: the subject is drawn from ``default_rng([seed, index])``.
+        cfg: options (defaults when None).
+        model: an anny model (default: :func:`torchfit.synth.body.load_anny`).
+        masks_only: write only ``truth_masks/`` (and ``stereo/truth_masks/``), the same files
+            a full run writes, for a subject generated before the masks existed; images,
+            cameras, ``truth.json`` and ``synth.json`` are left as they are.
+
+    Returns:
+        A summary: phenotype, sex, camera azimuth and the truth measurements.
+    """
+    cfg = cfg or SynthConfig()
+    folder = Path(folder)
+    sc = subject_scene(seed, index, cfg, model)
+    rng, body, faces, albedo, size = sc.rng, sc.body, sc.faces, sc.albedo, sc.size
+    sex, phen, azimuth = sc.sex, sc.phenotype, sc.azimuth
+    room, light, hard, camera, facing = sc.room, sc.light, sc.hard, sc.camera, sc.facing
 
     truth = _truth(body)
     joints_world = {}

@@ -1,0 +1,93 @@
+"""Tracking speed: one sequence against B sequences advanced together (one frame per row).
+
+    python benchmarks/bench_track.py --model RUN/SUBJECT --sequence SEQ_DIR \
+        [--frames 8] [--batch 16] [--repeats 3]
+
+The B rows are the same sequence (the per-row work is the same, so the ratio is the batching's
+gain alone). Silhouettes are segmented once beforehand and timed separately (per image); the
+tracker's time per frame per sequence is measured for B = 1 and B = ``--batch``, interleaved
+``--repeats`` times (medians quoted), as wall time and as this process's CPU time (the latter
+holds better on a shared machine). The first frame (its start hypotheses) is not timed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import torch
+
+from torchfit.body.model import BodyModel
+from torchfit.camera import stack_cameras
+from torchfit.image import fit_background, segment
+from torchfit.io.images import load_frames
+from torchfit.pipeline.track import TrackConfig, _start, load_fitted, load_sequence
+from torchfit.track import PoseLayout, track
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--model", required=True)
+    p.add_argument("--sequence", required=True)
+    p.add_argument("--frames", type=int, default=8)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--repeats", type=int, default=3)
+    args = p.parse_args()
+    cfg = TrackConfig()
+    template, scales = load_fitted(args.model)
+    model = BodyModel(template)
+    sc = torch.tensor([scales[s] for s in model.template.segments], dtype=torch.float64)
+    seq = load_sequence(args.sequence, args.frames + 1)
+    bg, _ = load_frames(seq.background, seq.camera.image_size)
+    background = fit_background(bg, cfg.segmentation)
+    t0 = time.perf_counter()
+    masks = []
+    for path in seq.frames:
+        image, _ = load_frames([path], seq.camera.image_size)
+        masks.append(segment(image, background, cfg.segmentation).masks[0, 0])
+    seg_ms = 1000 * (time.perf_counter() - t0) / len(seq.frames)
+    layout = PoseLayout(model, cfg.track)
+    cam1 = seq.camera.to(dtype=model.dtype)
+    x0 = _start(model, sc[None], cam1, masks[0][None], layout, cfg.track)
+    results: dict[int, list[float]] = {1: [], args.batch: []}
+    cpu: dict[int, list[float]] = {1: [], args.batch: []}
+    for _ in range(args.repeats):
+        for b in (1, args.batch):
+            cams = stack_cameras([seq.camera] * b).to(dtype=model.dtype)
+            frames = (m[None].expand(b, -1, -1) for m in masks[1:])
+            t0, c0 = time.perf_counter(), time.process_time()
+            track(
+                model,
+                sc[None].expand(b, -1, -1).contiguous(),
+                cams,
+                frames,
+                x0.expand(b, -1),
+                cfg.track,
+            )
+            results[b].append(1000 * (time.perf_counter() - t0) / (args.frames * b))
+            cpu[b].append(1000 * (time.process_time() - c0) / (args.frames * b))
+    one = statistics.median(results[1])
+    many = statistics.median(results[args.batch])
+    print(
+        json.dumps(
+            {
+                "segmentation_ms_per_image": round(seg_ms, 1),
+                "track_ms_per_frame_B1": round(one, 1),
+                f"track_ms_per_frame_per_sequence_B{args.batch}": round(many, 1),
+                "fps_ratio": round(one / many, 2),
+                "cpu_ms_per_frame_B1": round(statistics.median(cpu[1]), 1),
+                f"cpu_ms_per_frame_per_sequence_B{args.batch}": round(
+                    statistics.median(cpu[args.batch]), 1
+                ),
+                "runs_ms": {str(k): [round(v, 1) for v in vs] for k, vs in results.items()},
+                "threads": torch.get_num_threads(),
+            },
+            indent=1,
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,102 @@
+"""Test sequences from real motion (tools/make_sequence.py) and tracking them end to end
+(tools/track.py); anny generation makes these slow."""
+
+import csv
+import importlib.util
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from torchfit.io.bvh import read_bvh
+from torchfit.synth.mocap import load_mocap, retarget
+
+REPO = Path(__file__).resolve().parents[1]
+CMU = Path(os.environ.get("TORCHFIT_SHARED", REPO / ".." / "shared")) / "data" / "cmu-mocap-sample"
+needs_cmu = pytest.mark.skipif(not (CMU / "01_01.bvh").is_file(), reason="no shared CMU data")
+
+
+def _tool(name: str):
+    spec = importlib.util.spec_from_file_location(name, REPO / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@needs_cmu
+def test_asf_amc_and_bvh_give_the_same_legs():
+    """01_01 as ASF/AMC and as BVH: the leg joints agree (the BVH has one more frame, a rest
+    pose first)."""
+    amc = load_mocap(CMU / "01_01.amc")
+    bvh = load_mocap(CMU / "01_01.bvh")
+    assert bvh.num_frames == amc.num_frames + 1
+    for name in ("l_hip", "l_knee", "l_ankle", "r_knee"):
+        gap = np.linalg.norm(amc.joints[name][500] - bvh.joints[name][501])
+        assert gap < 0.02, (name, gap)
+
+
+@needs_cmu
+def test_retarget_keeps_the_limb_directions():
+    clip = load_mocap(CMU / "11_01.amc")
+    joints = {k: v[300] for k, v in clip.joints.items()}
+    frame, local = retarget(joints)
+    np.testing.assert_allclose(frame.T @ frame, np.eye(3), atol=1e-9)
+    down = np.array([0.0, 0.0, -1.0])
+    upper = local["l_thigh"]
+    lower = upper @ local["l_shank"]
+    for rot, (a, b) in ((upper, ("l_hip", "l_knee")), (lower, ("l_knee", "l_ankle"))):
+        want = frame.T @ (joints[b] - joints[a])
+        np.testing.assert_allclose(rot @ down, want / np.linalg.norm(want), atol=1e-6)
+
+
+@pytest.mark.slow
+@needs_cmu
+def test_make_sequence_and_track_it(tmp_path):
+    bvhio = pytest.importorskip("bvhio")
+    out = tmp_path / "clip"
+    args = ["--bvh", str(CMU / "01_01.bvh"), "--out", str(out), "--frames", "4"]
+    args += ["--start", "300", "--step", "4", "--seed", "5", "--set", "image_size=[360,288]"]
+    assert _tool("make_sequence").main(args) == 0
+    seq = out / "sequence"
+    truth = json.loads((seq / "truth.json").read_text())
+    assert truth["fps"] == pytest.approx(30.0, rel=1e-3)
+    assert len(truth["joints_world"]) == 4 and "l_knee" in truth["joints_world"][0]
+    assert len(list((seq / "frames").glob("*.png"))) == 4
+    for name in ("camera.yaml", "truth.json", "synth.json", "poses/pose6.png"):
+        assert (out / "subject" / name).is_file(), name
+    # track it with the template's shape and the body's true segment lengths
+    model_dir = tmp_path / "model"
+    model_dir.mkdir()
+    from torchfit.body.model import BodyModel
+
+    segments = BodyModel("mpeg4_full").template.segments
+    (model_dir / "params.json").write_text(
+        json.dumps({"template": "mpeg4_full", "segment_scales": {s: [1, 1, 1] for s in segments}})
+    )
+    track_out = tmp_path / "track"
+    code = _tool("track").main(
+        [
+            "--config",
+            str(REPO / "configs/track.yaml"),
+            "--model",
+            str(model_dir),
+            "--true-skeleton",
+            str(out / "subject"),
+            "--sequence",
+            str(seq),
+            "--out",
+            str(track_out),
+        ]
+    )
+    assert code in (0, 1)
+    frames = json.loads((track_out / "joints_world.json").read_text())["frames"]
+    assert len(frames) == 4
+    rows = list(csv.DictReader((track_out / "track.csv").open()))
+    assert [int(r["frame"]) for r in rows] == [0, 1, 2, 3]
+    motion = read_bvh(track_out / "motion.bvh")
+    assert motion.num_frames == 4
+    assert bvhio.readAsBvh(str(track_out / "motion.bvh")).FrameCount == 4
+    error = json.loads((track_out / "eval.json").read_text())["mean_joint_error_mm"]
+    assert error < 200, error

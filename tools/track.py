@@ -1,0 +1,136 @@
+"""Motion capture with a fitted model: track the person's silhouette in one or more sequences.
+
+    python tools/track.py --config configs/track.yaml --model RUN_DIR/SUBJECT \
+        --sequence SEQ_DIR [--sequence SEQ_DIR2 ...] --out OUT_DIR [--frames N]
+
+``--model`` is a fitted subject folder (its ``params.json`` gives the template and the segment
+scales, which stay fixed). Each ``SEQ_DIR`` holds ``camera.yaml``, ``background/*.png``,
+``frames/000000.png`` … (or ``--video FILE``, one per sequence) and optionally ``truth.json``.
+Several sequences are tracked together, one frame per batch row. Writes per sequence
+``OUT_DIR/<k>_<name>/`` (``OUT_DIR`` itself for a single sequence): ``joints_world.json``,
+``motion.bvh``, ``track.csv``, ``overlay/`` with ``--overlays`` and, with a truth,
+``eval.json``; TensorBoard scalars in ``OUT_DIR/tb``.
+
+Exit codes: 0 ok, 1 a sequence lost frames (status ``uncertain``), 2 bad arguments or config,
+3 output not writable, 4 model or sequence missing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from torchfit.config import load_config
+from torchfit.errors import ConfigError, DataError, OutputError, TorchfitError
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", default=None, help="YAML file (configs/track.yaml)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--model", required=True, help="fitted subject folder (params.json)")
+    parser.add_argument("--sequence", action="append", required=True, help="sequence folder")
+    parser.add_argument(
+        "--video",
+        action="append",
+        default=None,
+        help="read a sequence's frames from this video instead of its frames/ (one per "
+        "--sequence, in order)",
+    )
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--frames", type=int, default=None, help="track only the first N frames")
+    parser.add_argument(
+        "--true-skeleton",
+        default=None,
+        metavar="SUBJECT_DIR",
+        help="a synthetic subject folder: replace the fitted segment lengths by its true ones "
+        "(truth.json), to measure the tracker alone",
+    )
+    parser.add_argument("--overlays", action="store_true", help="write overlay/<frame>.png")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    from torchfit.body.model import BodyModel
+    from torchfit.pipeline.tensorboard import TensorBoardCallback
+    from torchfit.pipeline.track import (
+        TrackConfig,
+        load_fitted,
+        load_sequence,
+        skeleton_scales,
+        track_sequences,
+    )
+
+    try:
+        config = load_config(args.config, args.set, schema=TrackConfig)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        template, scales = load_fitted(args.model)
+        model = BodyModel(template)
+        if args.true_skeleton:
+            truth = json.loads((Path(args.true_skeleton) / "truth.json").read_text())
+            scales = skeleton_scales(model, scales, truth["joints_world"]["pose1"])
+        order = model.template.segments
+        scale_t = torch.tensor([scales[s] for s in order], dtype=torch.float64)
+        videos = args.video or [None] * len(args.sequence)
+        if len(videos) != len(args.sequence):
+            print("error: give one --video per --sequence", file=sys.stderr)
+            return 2
+        seqs = [
+            load_sequence(s, args.frames, v) for s, v in zip(args.sequence, videos, strict=True)
+        ]
+    except (DataError, KeyError, OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 4
+    out = Path(args.out)
+    outs = [out] if len(seqs) == 1 else [out / f"{k:02d}_{s.name}" for k, s in enumerate(seqs)]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        t0, c0 = time.perf_counter(), time.process_time()
+        with TensorBoardCallback(out / "tb", "track") as tb:
+            summaries = track_sequences(
+                model,
+                scale_t,
+                seqs,
+                outs,
+                config,
+                tb,
+                progress=lambda it: tqdm(it, desc="frames", total=max(s.num_frames for s in seqs)),
+                overlays=args.overlays,
+            )
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    except OutputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+    except OSError as exc:
+        print(f"error: cannot write {out}: {exc}", file=sys.stderr)
+        return 3
+    except TorchfitError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    frames = sum(s["frames"] for s in summaries)
+    report = {
+        "wall_s": round(wall, 2),
+        "cpu_s": round(cpu, 2),
+        "frames": frames,
+        "fps": round(frames / wall, 2),
+        "sequences": [
+            {k: v for k, v in s.items() if k not in ("per_frame_mm",)} for s in summaries
+        ],
+    }
+    print(json.dumps(report, indent=1))
+    return 1 if any(s["status"]["uncertain"] for s in summaries) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

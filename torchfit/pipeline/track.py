@@ -1,0 +1,400 @@
+"""Motion capture runs: a fitted model, sequences of frames, the tracker, the outputs.
+
+:func:`track_sequences` reads B sequences (each ``camera.yaml``, ``background/``,
+``frames/``, optionally ``truth.json``), segments every frame, tracks them together
+(:func:`torchfit.track.track`, one frame per batch row) and writes per sequence into its
+output folder: ``joints_world.json`` (``{"fps", "frames": [{joint: [x, y, z]}, …]}``,
+design.md's joints, world frame, metres), ``motion.bvh`` (the fitted skeleton, one rotation
+set per frame), ``track.csv`` (frame, status, cost, iterations, ms, contour_rms, confidence),
+TensorBoard scalars under ``tb/``, and with a truth, ``eval.json`` (mean per-joint position
+error, head_top excluded).
+
+The first frame starts from the neutral pose facing the camera, standing where the
+silhouette's lowest point meets the floor; yaw hypotheses within ±45° of facing the camera
+are solved as extra batch rows and the best contour kept. A silhouette looks the same from
+the front and from the back (left and right swapped), so the person must face the camera,
+roughly, in the first frame; after that the temporal term keeps the side.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchfit.body.bvh import model_motion
+from torchfit.body.model import BodyModel
+from torchfit.camera import Camera, camera_centre, project_points, stack_cameras
+from torchfit.errors import DataError
+from torchfit.fit.person import person_data_from_masks
+from torchfit.image import SegmentationOptions, fit_background, segment
+from torchfit.io.bvh import write_bvh
+from torchfit.io.camera import load_camera
+from torchfit.io.export import write_json
+from torchfit.io.files import make_dirs, write_atomic
+from torchfit.io.images import list_images, load_frames, write_image
+from torchfit.io.video import read_video, video_frame_count
+from torchfit.measurements import JOINT_NAMES
+from torchfit.track import PoseLayout, TrackOptions, solve_frame, track
+
+__all__ = [
+    "TrackConfig",
+    "Sequence",
+    "load_fitted",
+    "load_sequence",
+    "track_sequences",
+    "skeleton_scales",
+]
+
+#: segment whose scale a true limb length sets -> (its joint, the joint at its far end).
+_LIMBS = {
+    "{s}_upperarm": ("{s}_shoulder", "{s}_elbow"),
+    "{s}_forearm": ("{s}_elbow", "{s}_wrist"),
+    "{s}_thigh": ("{s}_hip", "{s}_knee"),
+    "{s}_calf": ("{s}_knee", "{s}_ankle"),
+}
+
+
+#: first-frame yaw hypotheses around facing the camera, radians.
+_TURNS = tuple(math.radians(d) for d in (-45.0, -20.0, 0.0, 20.0, 45.0))
+
+
+@dataclass
+class TrackConfig:
+    """configs/track.yaml: the segmentation and the tracker's options."""
+
+    segmentation: SegmentationOptions = field(default_factory=SegmentationOptions)
+    track: TrackOptions = field(default_factory=TrackOptions)
+
+
+@dataclass
+class Sequence:
+    """A sequence folder (its frames as images, or a video file)."""
+
+    name: str
+    camera: Camera
+    background: list[Path]
+    frames: list[Path]
+    fps: float
+    truth: list[dict] | None
+    video: Path | None = None
+    video_frames: int = 0
+
+    @property
+    def num_frames(self) -> int:
+        """The number of frames to track."""
+        return self.video_frames if self.video is not None else len(self.frames)
+
+    def images(self) -> Iterator[torch.Tensor]:
+        """The frames in order, each (1, 3, H, W) RGB in [0, 1]."""
+        if self.video is None:
+            for path in self.frames:
+                yield load_frames([path], self.camera.image_size)[0]
+            return
+        yield from read_video(self.video, self.camera.image_size, self.video_frames)
+
+
+def load_fitted(folder: str | Path) -> tuple[str, torch.Tensor]:
+    """Template name and (S, 3) segment scales of a fitted subject folder (params.json).
+
+    Raises:
+        DataError: no or unreadable params.json.
+    """
+    path = Path(folder) / "params.json"
+    if not path.is_file():
+        raise DataError(f"fitted model not found: {path} (expected a fit's subject folder)")
+    try:
+        doc = json.loads(path.read_text())
+        scales = doc["segment_scales"]
+        template = doc["template"]
+    except (ValueError, KeyError) as exc:
+        raise DataError(f"{path}: not a fit's params.json ({exc})") from None
+    return template, scales
+
+
+def load_sequence(
+    folder: str | Path, max_frames: int | None = None, video: str | Path | None = None
+) -> Sequence:
+    """Read a sequence folder's layout (images are read while tracking).
+
+    Args:
+        folder: the sequence folder.
+        max_frames: track only the first frames.
+        video: a video file to read the frames from instead of ``frames/``.
+
+    Raises:
+        DataError: a part is missing or the video cannot be read.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"sequence folder not found: {folder}")
+    camera = load_camera(folder / "camera.yaml")
+    background = list_images(folder / "background")
+    frames = [] if video is not None else list_images(folder / "frames")
+    if not background or (video is None and not frames):
+        raise DataError(f"{folder}: needs background/*.png and frames/*.png (or a video)")
+    count = 0
+    if video is not None:
+        count = video_frame_count(video)
+        if max_frames is not None:
+            count = min(count, max_frames)
+    truth, fps = None, 25.0
+    if (folder / "truth.json").is_file():
+        doc = json.loads((folder / "truth.json").read_text())
+        truth, fps = doc.get("joints_world"), float(doc.get("fps", fps))
+    if max_frames is not None:
+        frames = frames[:max_frames]
+    path = Path(video) if video is not None else None
+    return Sequence(folder.name, camera, background, frames, fps, truth, path, count)
+
+
+def _masks(seqs: list[Sequence], backgrounds, options: SegmentationOptions):
+    """Per frame, (B, H, W) silhouettes (a finished sequence repeats its last frame)."""
+    n = max(s.num_frames for s in seqs)
+    sources = [s.images() for s in seqs]
+    last: list[torch.Tensor | None] = [None] * len(seqs)
+    for f in range(n):
+        for i, (s, bg) in enumerate(zip(seqs, backgrounds, strict=True)):
+            if f < s.num_frames:
+                last[i] = segment(next(sources[i]), bg, options).masks[0, 0]
+        yield torch.stack(last)
+
+
+def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
+    """First-frame rows: yaw hypotheses per sequence, the best contour kept."""
+    b = scales.shape[0]
+    centre = camera_centre(cameras.R, cameras.t).to(model.dtype)
+    yaw0 = torch.atan2(centre[:, 1], centre[:, 0])
+    rows = []
+    for i in range(b):
+        ys, xs = torch.nonzero(mask[i], as_tuple=True)
+        foot = torch.tensor([[float(xs.float().mean()), float(ys.max())]], dtype=model.dtype)
+        # the floor point under the silhouette's lowest pixel
+        cam = cameras[[i]]
+        k = cam.K[0].to(model.dtype)
+        ray = torch.linalg.solve(k, torch.cat([foot[0], torch.ones(1, dtype=model.dtype)]))
+        d = cam.R[0].to(model.dtype).T @ ray
+        c = centre[i]
+        s = -c[2] / d[2] if abs(float(d[2])) > 1e-9 else torch.tensor(0.0, dtype=model.dtype)
+        ground = c + s * d
+        for turn in _TURNS:
+            x = torch.zeros(layout.num_params, dtype=model.dtype)
+            x[:2] = ground[:2]
+            x[5] = yaw0[i] + turn
+            rows.append(x)
+    x0 = torch.stack(rows)
+    n = len(_TURNS)
+    sc = scales.repeat_interleave(n, 0)
+    cams = cameras[torch.arange(b).repeat_interleave(n)]
+    # the root height: the model's lowest point on the floor
+    with torch.no_grad():
+        t, r, q = PoseLayout.split(x0)
+        low = model(sc, q, t, r).vertices[..., 2].min(1).values
+    x0[:, 2] -= low
+    person = person_data_from_masks(
+        mask.repeat_interleave(n, 0)[:, None],
+        cams,
+        stride=options.contour_stride,
+        dtype=model.dtype,
+    )
+    opts = TrackOptions(
+        **{
+            **options.__dict__,
+            "iterations": 3 * options.iterations,
+            "rounds": 3,
+            "temporal_joints": 0.5,
+            "temporal_rotation": 0.0,
+            "temporal_translation": 0.0,
+        }
+    )
+    res = solve_frame(model, sc, person, layout, x0, x0, opts)
+    best = res.contour_rms.reshape(b, n).argmin(1)
+    return res.x.reshape(b, n, -1)[torch.arange(b), best]
+
+
+def _joints(model: BodyModel, scales: torch.Tensor, x: torch.Tensor) -> dict[str, np.ndarray]:
+    t, r, q = PoseLayout.split(x)
+    with torch.no_grad():
+        out = model(scales.expand(x.shape[0], -1, -1), q, t, r)
+        named = model.joint_positions(out)
+    return {n: named[n].cpu().numpy() for n in JOINT_NAMES}
+
+
+def track_sequences(
+    model: BodyModel,
+    scales: torch.Tensor,
+    sequences: list[Sequence],
+    outs: list[Path],
+    config: TrackConfig,
+    tb=None,
+    progress=None,
+    overlays: bool = False,
+) -> list[dict]:
+    """Track ``sequences`` together and write each one's outputs to ``outs``.
+
+    Args:
+        model: the body model (template of the fit).
+        scales: (B, S, 3) or (S, 3) the fitted scales (per sequence or shared).
+        sequences: B sequences.
+        outs: B output folders.
+        config: segmentation and tracker options.
+        tb: optional :class:`torchfit.pipeline.tensorboard.TensorBoardCallback`.
+        progress: wraps the frame iterator.
+        overlays: also write ``overlay/<frame>.png`` (model contour green, person magenta).
+
+    Returns:
+        Per sequence a summary (frames, statuses, ms per frame, errors with a truth).
+    """
+    b = len(sequences)
+    if scales.dim() == 2:
+        scales = scales[None].expand(b, -1, -1)
+    scales = scales.to(model.dtype).contiguous()
+    cameras = stack_cameras([s.camera for s in sequences]).to(dtype=model.dtype)
+    backgrounds = []
+    for s in sequences:
+        frames, _ = load_frames(s.background, s.camera.image_size)
+        backgrounds.append(fit_background(frames, config.segmentation))
+    layout = PoseLayout(model, config.track)
+    masks = _masks(sequences, backgrounds, config.segmentation)
+    first = next(masks)
+    start = _start(model, scales, cameras, first, layout, config.track)
+
+    def frames_again():
+        yield first
+        yield from masks
+
+    records = track(model, scales, cameras, frames_again(), start, config.track, progress)
+    summaries = []
+    for i, (s, out) in enumerate(zip(sequences, outs, strict=True)):
+        recs = records[i][: s.num_frames]
+        make_dirs(out)
+        x = torch.stack([r.x for r in recs])
+        joints = _joints(model, scales[i], x)
+        frames_doc = [
+            {n: [round(float(v), 5) for v in joints[n][f]] for n in JOINT_NAMES}
+            for f in range(len(recs))
+        ]
+        write_json(out / "joints_world.json", {"fps": s.fps, "frames": frames_doc})
+        t, r, q = PoseLayout.split(x)
+        write_bvh(out / "motion.bvh", model_motion(model, scales[i], q, t, r, 1.0 / s.fps))
+        buf = io.StringIO()
+        w = csv.writer(buf)
+        w.writerow(["frame", "status", "cost", "iterations", "ms", "contour_rms", "confidence"])
+        for rec in recs:
+            w.writerow(
+                [
+                    rec.frame,
+                    rec.status,
+                    f"{rec.cost:.4f}",
+                    rec.iterations,
+                    f"{rec.ms:.1f}",
+                    f"{rec.contour_rms:.3f}",
+                    f"{rec.confidence:.3f}",
+                ]
+            )
+        write_atomic(out / "track.csv", buf.getvalue())
+        if overlays:
+            _write_overlays(model, scales[i], s, backgrounds[i], x, recs, out, config)
+        if tb is not None:
+            for rec in recs:
+                tb.add_scalar(f"track/{s.name}/contour_rms", rec.contour_rms, rec.frame)
+                tb.add_scalar(f"track/{s.name}/confidence", rec.confidence, rec.frame)
+                tb.add_scalar(f"track/{s.name}/iterations", rec.iterations, rec.frame)
+        summary = {
+            "sequence": s.name,
+            "frames": len(recs),
+            "status": {
+                k: sum(r.status == k for r in recs) for k in ("ok", "recovered", "uncertain")
+            },
+            "ms_per_frame": float(np.mean([r.ms for r in recs])),
+        }
+        if s.truth is not None:
+            summary.update(joint_errors(frames_doc, s.truth[: len(recs)]))
+            write_json(out / "eval.json", summary)
+        summaries.append(summary)
+    return summaries
+
+
+def _write_overlays(model, scales, seq, background, x, recs, out, config) -> None:
+    from torchfit.viz.overlay import fit_overlay
+    from torchfit.viz.raster import render_silhouette
+
+    cam = seq.camera.to(dtype=model.dtype)
+    t, r, q = PoseLayout.split(x)
+    with torch.no_grad():
+        verts = model(scales.expand(x.shape[0], -1, -1), q, t, r).vertices
+    faces = model.faces.numpy()
+    for f, (rec, image) in enumerate(zip(recs, seq.images(), strict=False)):
+        person = segment(image, background, config.segmentation).masks[0, 0].numpy()
+        pix = project_points(verts[f : f + 1], cam)[0].numpy()
+        mask = render_silhouette(pix, faces, seq.camera.image_size) > 0
+        rgb = (image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+        label = f"{seq.name} {f:06d} {rec.status} {rec.contour_rms:.1f}px"
+        write_image(out / "overlay" / f"{f:06d}.png", fit_overlay(rgb, person, mask, label))
+
+
+def joint_errors(tracked: list[dict], truth: list[dict]) -> dict:
+    """Mean per-joint position error (mm) over frames, head_top excluded."""
+    names = [n for n in JOINT_NAMES if n != "head_top"]
+    err = (
+        np.array(
+            [
+                [np.linalg.norm(np.subtract(t[n], f[n])) for n in names]
+                for f, t in zip(tracked, truth, strict=True)
+            ]
+        )
+        * 1000
+    )
+    return {
+        "mean_joint_error_mm": float(err.mean()),
+        "per_joint_mm": {n: float(err[:, k].mean()) for k, n in enumerate(names)},
+        "per_frame_mm": [round(float(v), 1) for v in err.mean(1)],
+    }
+
+
+def skeleton_scales(
+    model: BodyModel, scales: dict[str, list[float]], joints: dict[str, list[float]]
+) -> dict[str, list[float]]:
+    """Fitted scales with a body's true skeleton lengths (a synthetic subject's
+    ``truth.json`` joints of one capture): each limb segment's scale along its bone (z) set
+    so its joint-to-joint length is the true one, the spine segments' z by the true
+    back-to-neck length over the fitted, the pelvis across (y) by the true hip width over the
+    fitted; the segments' thickness stays the fit's.
+
+    Args:
+        model: the body model.
+        scales: the fit's ``segment_scales`` (params.json).
+        joints: true joint positions of one capture.
+
+    Returns:
+        segment -> [sx, sy, sz], as ``params.json``'s ``segment_scales``.
+    """
+    t = model.template
+    sc = torch.tensor([scales[n] for n in t.segments], dtype=model.dtype)
+    with torch.no_grad():
+        zero = {k: v for k, v in model.zeros(1).items() if k != "scales"}
+        fitted = model.joint_positions(model(sc[None], **zero))
+    fj = {k: v[0].numpy() for k, v in fitted.items()}
+    true = {k: np.asarray(v, dtype=np.float64) for k, v in joints.items()}
+    ratio = lambda a, b: float(  # noqa: E731
+        np.linalg.norm(true[b] - true[a]) / np.linalg.norm(fj[b] - fj[a])
+    )
+    out = {n: list(map(float, sc[i])) for i, n in enumerate(t.segments)}
+    for side in ("l", "r"):
+        for seg, (a, b) in _LIMBS.items():
+            name = seg.format(s=side)
+            if name in out:
+                out[name][2] *= ratio(a.format(s=side), b.format(s=side))
+    spine = ratio("back", "neck")
+    for name in t.segments:
+        if t.parents[t.segments.index(name)] < 0 or name in ("l5", "t10", "t1", "torso"):
+            out[name][2] *= spine
+    out[t.segments[0]][1] *= ratio("l_hip", "r_hip")
+    return out

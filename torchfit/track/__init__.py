@@ -1,0 +1,7 @@
+"""Motion capture with a fitted model: silhouette tracking frame by frame, batched over
+sequences."""
+
+from torchfit.track.frame import FrameResult, PoseLayout, TrackOptions, solve_frame
+from torchfit.track.tracker import FrameRecord, track
+
+__all__ = ["TrackOptions", "PoseLayout", "FrameResult", "solve_frame", "FrameRecord", "track"]

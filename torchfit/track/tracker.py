@@ -1,0 +1,156 @@
+"""Track B sequences together, one frame per batch row (:func:`track`).
+
+Per frame: each sequence's image is segmented against its background
+(:func:`torchfit.image.segment`), the person data are made as for the fit
+(:func:`torchfit.fit.person.person_data_from_masks`), and :func:`torchfit.track.frame.
+solve_frame` fits every row's pose, warm-started and pulled towards the constant-velocity
+prediction ``2 x_{t-1} - x_{t-2}``.
+
+Recovery: a row whose contour RMS exceeds ``recover_factor`` times its sequence's running
+median of good frames (and at least ``recover_min_px``) is solved again from its last good
+frame, with no temporal pull; the frame's status is ``recovered`` when that brings it back
+under the threshold, ``uncertain`` otherwise; after either the velocity is reset (the next
+frame starts from this pose, not an extrapolation of a bad one), so one bad frame does not
+throw the next ones. ``confidence = 1 / (1 + (rms / confidence_px)²)``: a single
+camera cannot tell some poses apart (an arm in front of or behind the body), and the contour
+RMS cannot either; the confidence says how well the silhouette is explained, not which of
+those poses is right.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+
+import torch
+
+from torchfit.body.model import BodyModel
+from torchfit.camera import Camera
+from torchfit.fit.model_contour import EdgeSampler
+from torchfit.fit.person import person_data_from_masks
+from torchfit.track.frame import PoseLayout, TrackOptions, solve_frame
+
+__all__ = ["FrameRecord", "track"]
+
+
+@dataclass
+class FrameRecord:
+    """One tracked frame of one sequence."""
+
+    frame: int
+    status: str
+    cost: float
+    iterations: int
+    ms: float
+    contour_rms: float
+    confidence: float
+    x: torch.Tensor = field(repr=False)
+
+
+def _median(values: list[float]) -> float:
+    s = sorted(values[-30:])
+    return s[len(s) // 2]
+
+
+def track(
+    model: BodyModel,
+    scales: torch.Tensor,
+    cameras: Camera,
+    masks: Iterable[torch.Tensor],
+    x_start: torch.Tensor,
+    options: TrackOptions | None = None,
+    progress: Callable[[Iterator], Iterator] | None = None,
+) -> list[list[FrameRecord]]:
+    """Track B sequences.
+
+    Args:
+        model: the body model.
+        scales: (B, S, 3) fixed segment scales per sequence.
+        cameras: B cameras.
+        masks: per frame, (B, H, W) bool silhouettes (a sequence that has ended repeats its
+            last mask; the caller drops those frames).
+        x_start: (B, P) the pose rows of the frame before the first.
+        options: tracker options.
+        progress: wraps the frame iterator.
+
+    Returns:
+        Per sequence, its frame records.
+    """
+    options = options or TrackOptions()
+    layout = PoseLayout(model, options)
+    sampler = EdgeSampler(model.faces, options.samples_per_edge)
+    b = scales.shape[0]
+    prev = x_start.clone()
+    prev2 = x_start.clone()
+    good = x_start.clone()
+    history: list[list[float]] = [[] for _ in range(b)]
+    out: list[list[FrameRecord]] = [[] for _ in range(b)]
+    it = iter(masks)
+    if progress is not None:
+        it = progress(it)
+    for f, mask in enumerate(it):
+        t0 = time.perf_counter()
+        person = person_data_from_masks(
+            mask[:, None], cameras, stride=options.contour_stride, dtype=model.dtype
+        )
+        pred = layout.clip(2 * prev - prev2)
+        res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)
+        status = ["ok"] * b
+        limit = [
+            max(options.recover_min_px, options.recover_factor * _median(h)) if h else float("inf")
+            for h in history
+        ]
+        bad = [i for i in range(b) if float(res.contour_rms[i]) > limit[i]]
+        if bad:
+            idx = torch.tensor(bad)
+            sub = person_data_from_masks(
+                mask[idx][:, None], cameras[idx], stride=options.contour_stride, dtype=model.dtype
+            )
+            again = solve_frame(
+                model,
+                scales[idx],
+                sub,
+                layout,
+                good[idx],
+                good[idx],
+                TrackOptions(
+                    **{
+                        **options.__dict__,
+                        "temporal_joints": 0.1,
+                        "temporal_rotation": 0.1,
+                        "temporal_translation": 1.0,
+                        "iterations": 2 * options.iterations,
+                    }
+                ),
+                sampler,
+            )
+            for k, i in enumerate(bad):
+                better = float(again.contour_rms[k]) < float(res.contour_rms[i])
+                if better:
+                    res.x[i] = again.x[k]
+                    res.contour_rms[i] = again.contour_rms[k]
+                    res.cost[i] = again.cost[k]
+                res.iterations[i] += again.iterations[k]
+                status[i] = "recovered" if float(res.contour_rms[i]) <= limit[i] else "uncertain"
+        ms = 1000 * (time.perf_counter() - t0) / b
+        for i in range(b):
+            rms = float(res.contour_rms[i])
+            if status[i] != "uncertain":
+                history[i].append(rms)
+                good[i] = res.x[i]
+            out[i].append(
+                FrameRecord(
+                    frame=f,
+                    status=status[i],
+                    cost=float(res.cost[i]),
+                    iterations=int(res.iterations[i]),
+                    ms=ms,
+                    contour_rms=rms,
+                    confidence=1.0 / (1.0 + (rms / options.confidence_px) ** 2),
+                    x=res.x[i].detach().clone(),
+                )
+            )
+        prev2 = torch.where(torch.tensor([s == "ok" for s in status])[:, None], prev, res.x)
+        prev = res.x.detach().clone()
+    return out
