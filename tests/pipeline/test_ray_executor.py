@@ -261,3 +261,20 @@ def test_a_run_sets_its_thread_count(monkeypatch):
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_device_torch_cannot_use_is_a_config_error():
+    import torch
+
+    from torchfit.errors import ConfigError
+    from torchfit.pipeline.runtime import apply_runtime
+
+    before = torch.get_num_threads()
+    try:
+        with pytest.raises(ConfigError, match="run.device"):
+            apply_runtime(RunConfig(device="tpu"))
+        if not torch.cuda.is_available():
+            with pytest.raises(ConfigError, match="no CUDA device"):
+                apply_runtime(RunConfig(device="cuda"))
+    finally:
+        torch.set_num_threads(before)
