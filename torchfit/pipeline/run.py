@@ -70,7 +70,7 @@ def _fit(
     masks = torch.stack([p.masks[used] for p in prepared])
     shadow = torch.stack([p.shadow[used] for p in prepared])
     cameras = stack_cameras([p.subject.camera for p in prepared])
-    person = person_data(config, masks, shadow, cameras, model.dtype)
+    person = person_data(config, masks, shadow, cameras, model.dtype).to(model.device)
     fit = SilhouetteFit(model, person, config.fit, (config.model.scale_min, config.model.scale_max))
     images = torch.stack([p.images[used] for p in prepared])
     x, starts = start_params(fit, config, masks, images)
@@ -289,9 +289,9 @@ def run(
     subjects = load_dataset(config.data.root, config.data.subjects)
     if not subjects:
         raise DataError(f"no subject folders found in {config.data.root}")
-    model = BodyModel(
-        config.model.template, device=config.run.device, dtype=torch_dtype(config.run.dtype)
-    )
+    # with Ray the workers fit: the driver's model (fingerprints only) stays on the CPU
+    device = config.run.device if config.run.executor == "local" else "cpu"
+    model = BodyModel(config.model.template, device=device, dtype=torch_dtype(config.run.dtype))
     run_fp = Fingerprint(config_digest(config), template_digest(model.template))
     done, fingerprints = _kept(subjects, run_fp, run_dir, config.run.resume)
     todo = [s for s in subjects if s.name not in done]
