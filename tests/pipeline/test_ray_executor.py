@@ -278,3 +278,23 @@ def test_a_device_torch_cannot_use_is_a_config_error():
                 apply_runtime(RunConfig(device="cuda"))
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ("run.num_threads=64", "largest Ray node has"),
+        ("run.device=cuda", "no node of the Ray cluster has a GPU"),
+    ],
+)
+def test_a_task_no_node_can_run_is_exit_2(tmp_path, setting, message):
+    if setting == "run.device=cuda":
+        import torch
+
+        if torch.cuda.is_available():
+            pytest.skip("this machine has a GPU")
+    proc = fit(DEMO, tmp_path / "run", "--executor", "ray", "--set", setting, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    assert message in proc.stderr
+    assert not (tmp_path / "run").exists()  # nothing written

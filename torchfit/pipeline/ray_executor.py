@@ -24,6 +24,7 @@ import logging
 import os
 import tempfile
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -37,7 +38,15 @@ from torchfit.pipeline.outputs import SubjectResult, clear_outputs, result_from_
 from torchfit.pipeline.runtime import cpu_count
 from torchfit.status import SubjectStatus
 
-__all__ = ["MAX_RETRIES", "INSTALL_HINT", "require_ray", "plan", "run_on_ray"]
+__all__ = [
+    "MAX_RETRIES",
+    "INSTALL_HINT",
+    "RaySession",
+    "require_ray",
+    "plan",
+    "start_ray",
+    "run_on_ray",
+]
 
 log = logging.getLogger(__name__)
 
@@ -171,59 +180,102 @@ def _init(ray, run: RunConfig) -> int:
     return int(ray.cluster_resources().get("CPU", 1))
 
 
+def _check_fits(ray, threads: int, gpu: bool) -> None:
+    """Raise ConfigError when no node of the cluster can run a task (Ray would wait forever)."""
+    nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
+    cpus = max((r.get("CPU", 0) for r in nodes), default=0)
+    if threads > cpus:
+        raise ConfigError(
+            f"run.num_threads: {threads} CPUs per task, but the largest Ray node has {cpus:g}"
+        )
+    if gpu and not any(r.get("GPU", 0) >= 1 for r in nodes):
+        raise ConfigError("run.device: cuda, but no node of the Ray cluster has a GPU")
+
+
+@dataclass
+class RaySession:
+    """A connection to a Ray cluster for one run: how many tasks at once, their threads."""
+
+    ray: object
+    workers: int
+    threads: int
+    gpu: bool
+    cluster_cpus: int
+    started_here: bool
+
+    def close(self) -> None:
+        """Stop the local cluster this run started (a cluster at an address stays)."""
+        if self.started_here:
+            self.ray.shutdown()
+
+
+def start_ray(run: RunConfig) -> RaySession:
+    """Connect to ``run.address`` (or start a local cluster) and check that a task fits a node.
+
+    Raises:
+        ConfigError: Ray is missing, the cluster cannot be reached, or no node has the CPUs
+        (``run.num_threads``) or the GPU (``run.device: cuda``) a task asks for.
+    """
+    ray = require_ray()
+    started_here = not ray.is_initialized() and not run.address
+    cluster_cpus = _init(ray, run)
+    try:
+        workers, threads = plan(run, cluster_cpus)
+        gpu = str(run.device).startswith("cuda")
+        _check_fits(ray, threads, gpu)
+    except ConfigError:
+        if started_here:
+            ray.shutdown()
+        raise
+    return RaySession(ray, workers, threads, gpu, cluster_cpus, started_here)
+
+
 def run_on_ray(
+    session: RaySession,
     subjects: list[Subject],
     config: Config,
     run_dir: Path,
     fingerprints: dict[str, Fingerprint],
     finish: Callable[[SubjectResult], None],
 ) -> None:
-    """Fit ``subjects`` as Ray tasks, at most ``workers`` at once; ``finish`` each result.
+    """Fit ``subjects`` as Ray tasks, at most ``session.workers`` at once; ``finish`` each
+    result.
 
     The tasks are the local run's batches of ``fit.batch_size`` subjects, so that the results
     are the local run's to the last digits whatever the batch does (with fewer subjects than
     workers x ``fit.batch_size``, some workers stay idle: lower ``fit.batch_size``).
 
     Raises:
-        ConfigError: Ray is missing or the cluster cannot be reached; OutputError: the run
-        folder cannot be written.
+        OutputError: the run folder cannot be written.
     """
     from torchfit.pipeline.run import batches
 
-    ray = require_ray()
-    started_here = not ray.is_initialized() and not config.run.address
-    cluster_cpus = _init(ray, config.run)
-    workers, threads = plan(config.run, cluster_cpus)
-    gpu = str(config.run.device).startswith("cuda")
+    ray, workers, threads = session.ray, session.workers, session.threads
     task = ray.remote(_fit_task).options(
-        num_cpus=threads, num_gpus=1 if gpu else 0, max_retries=MAX_RETRIES
+        num_cpus=threads, num_gpus=1 if session.gpu else 0, max_retries=MAX_RETRIES
     )
     queue = batches(subjects, config.fit.batch_size)
     log.info(
         "ray: %d workers x %d torch threads (%d CPUs), %d batches",
-        *(workers, threads, cluster_cpus, len(queue)),
+        *(workers, threads, session.cluster_cpus, len(queue)),
     )
-    try:
-        pending: dict = {}
-        while queue or pending:
-            while queue and len(pending) < workers:
-                batch = queue.pop(0)
-                own = {s.name: fingerprints[s.name] for s in batch if s.name in fingerprints}
-                pending[task.remote(batch, config, own, threads)] = batch
-            ready, _ = ray.wait(list(pending), num_returns=1)
-            batch = pending.pop(ready[0])
-            try:
-                results, files = ray.get(ready[0])
-            except OutputError:
-                raise
-            except Exception as exc:  # the task failed for good (retries spent)
-                reason = _reason(exc)
-                log.error("batch %s failed: %s", [s.name for s in batch], reason)
-                failed = SubjectStatus.FAILED
-                results = [SubjectResult(s.name, failed, f"fit failed: {reason}") for s in batch]
-                files = {}
-            for result in _write_back(results, files, run_dir):
-                finish(result)
-    finally:
-        if started_here:
-            ray.shutdown()
+    pending: dict = {}
+    while queue or pending:
+        while queue and len(pending) < workers:
+            batch = queue.pop(0)
+            own = {s.name: fingerprints[s.name] for s in batch if s.name in fingerprints}
+            pending[task.remote(batch, config, own, threads)] = batch
+        ready, _ = ray.wait(list(pending), num_returns=1)
+        batch = pending.pop(ready[0])
+        try:
+            results, files = ray.get(ready[0])
+        except OutputError:
+            raise
+        except Exception as exc:  # the task failed for good (retries spent)
+            reason = _reason(exc)
+            log.error("batch %s failed: %s", [s.name for s in batch], reason)
+            failed = SubjectStatus.FAILED
+            results = [SubjectResult(s.name, failed, f"fit failed: {reason}") for s in batch]
+            files = {}
+        for result in _write_back(results, files, run_dir):
+            finish(result)

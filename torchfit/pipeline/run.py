@@ -295,10 +295,20 @@ def run(
     run_fp = Fingerprint(config_digest(config), template_digest(model.template))
     done, fingerprints = _kept(subjects, run_fp, run_dir, config.run.resume)
     todo = [s for s in subjects if s.name not in done]
+    session = None
+    if config.run.executor == "ray" and todo:  # connect before writing anything
+        from torchfit.pipeline.ray_executor import start_ray
 
-    make_dirs(run_dir)
-    remove_temporary(run_dir)
-    write_atomic(run_dir / "config.yaml", config_to_yaml(config))
+        session = start_ray(config.run)
+
+    try:
+        make_dirs(run_dir)
+        remove_temporary(run_dir)
+        write_atomic(run_dir / "config.yaml", config_to_yaml(config))
+    except OutputError:
+        if session is not None:
+            session.close()
+        raise
     bar = progress(len(subjects)) if progress else None
     if bar and done:
         bar.update(len(done))
@@ -315,10 +325,10 @@ def run(
         write_summary([done[s.name] for s in subjects if s.name in done], run_dir / "summary.csv")
 
     try:
-        if config.run.executor == "ray":
+        if session is not None:
             from torchfit.pipeline.ray_executor import run_on_ray
 
-            run_on_ray(todo, config, run_dir, fingerprints, finish)
+            run_on_ray(session, todo, config, run_dir, fingerprints, finish)
         else:
             for batch in batches(todo, config.fit.batch_size):
                 for result in fit_subjects(
@@ -326,6 +336,8 @@ def run(
                 ):
                     finish(result)
     finally:
+        if session is not None:
+            session.close()
         if tb is not None:
             tb.close()
         if bar:
