@@ -70,6 +70,7 @@ def test_the_solver_knows_nothing_of_bodies_or_images():
         ("trimesh", "torchfit.io"),
         ("torch.utils.tensorboard", "torchfit.pipeline.tensorboard"),
         ("pydantic", "torchfit.config"),
+        ("ray", "torchfit.pipeline.ray_executor"),
     ],
 )
 def test_each_dependency_has_one_home(library, home):

@@ -28,6 +28,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
+import torch.autograd.forward_ad as fwad
 
 from torchfit.errors import CameraError, ShapeError, check_shape
 
@@ -220,6 +221,19 @@ def look_at(
     return R, t
 
 
+def _is_dual(tensor: torch.Tensor) -> bool:
+    return fwad.unpack_dual(tensor).tangent is not None
+
+
+def _lift(constant: torch.Tensor, dual: bool) -> torch.Tensor:
+    """``constant`` as a dual tensor with zero tangent when ``dual`` (an operation between a
+    forward-mode dual and a plain tensor takes a slow path; see :mod:`torchfit._dual`)."""
+    if not dual or _is_dual(constant):
+        return constant
+    constant = constant.contiguous()
+    return fwad.make_dual(constant, torch.zeros_like(constant))
+
+
 def world_to_camera(points: torch.Tensor, camera: Camera) -> torch.Tensor:
     """Camera-frame coordinates ``R x + t``.
 
@@ -241,7 +255,14 @@ def world_to_camera(points: torch.Tensor, camera: Camera) -> torch.Tensor:
             f"points: dtype/device {points.dtype}/{points.device} differ from the camera's "
             f"{camera.R.dtype}/{camera.R.device} (use camera.to(device, dtype))"
         )
-    return points @ camera.R.transpose(1, 2) + camera.t.unsqueeze(1)
+    # Broadcast multiply-adds, not a batched matmul: on forward-mode dual points a 3x3 matmul
+    # takes a slow decomposition; the constants are lifted to duals for the same reason
+    # (:mod:`torchfit._dual`). Same sums in the same order as the matmul.
+    dual = _is_dual(points)
+    rt = _lift(camera.R.transpose(1, 2), dual).unsqueeze(1)  # rt[:, :, k]: column k of R
+    t = _lift(camera.t, dual)
+    x, y, z = points[..., 0:1], points[..., 1:2], points[..., 2:3]
+    return x * rt[:, :, 0] + y * rt[:, :, 1] + z * rt[:, :, 2] + t.unsqueeze(1)
 
 
 def distort_normalized(xy: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
@@ -256,6 +277,7 @@ def distort_normalized(xy: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
     """
     check_shape("xy", xy, ("B", "N", 2))
     check_shape("dist", dist, (None, 5))
+    dist = _lift(dist, _is_dual(xy))
     k1, k2, p1, p2, k3 = (dist[:, i : i + 1] for i in range(5))
     x, y = xy[..., 0], xy[..., 1]
     # written without Python number operands, which are slow on forward-mode dual tensors
@@ -289,7 +311,7 @@ def project_points(
     depth = cam[..., 2]
     xy = cam[..., :2] / depth.unsqueeze(-1)
     xy = distort_normalized(xy, camera.dist)
-    K = camera.K
+    K = _lift(camera.K, _is_dual(xy))
     u = K[:, 0:1, 0] * xy[..., 0] + K[:, 0:1, 1] * xy[..., 1] + K[:, 0:1, 2]
     v = K[:, 1:2, 1] * xy[..., 1] + K[:, 1:2, 2]
     pixels = torch.stack([u, v], dim=-1)

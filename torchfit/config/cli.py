@@ -16,10 +16,11 @@ from pathlib import Path
 
 from torchfit.config.loader import load_config
 from torchfit.config.schema import Config
-from torchfit.errors import DataError, OutputError, TorchfitError
+from torchfit.errors import ConfigError, DataError, OutputError, TorchfitError
 
 __all__ = [
     "add_config_args",
+    "add_executor_args",
     "config_from_args",
     "run_folder",
     "exit_code",
@@ -65,9 +66,28 @@ def add_config_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
+def add_executor_args(parser: argparse.ArgumentParser) -> None:
+    """Add ``--executor``, ``--address`` and ``--workers`` (``run.executor``, ``run.address``,
+    ``run.workers``)."""
+    parser.add_argument(
+        "--executor",
+        choices=("local", "ray"),
+        help="local (default): this process; ray: batches of subjects as Ray tasks",
+    )
+    parser.add_argument(
+        "--address",
+        help="Ray cluster to join: auto, HOST:PORT or ray://HOST:PORT "
+        "(default: start a local cluster)",
+    )
+    parser.add_argument(
+        "--workers", type=int, help="fits at once (Ray tasks; default: CPUs / run.num_threads)"
+    )
+
+
 def config_from_args(args: argparse.Namespace, schema: type = Config):
     """Load the config named by ``args`` with ``--set`` overrides, then --data (made absolute
-    from the current directory) and --out."""
+    from the current directory), --out and, where the parser has them, --executor, --address
+    and --workers."""
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
@@ -79,6 +99,15 @@ def config_from_args(args: argparse.Namespace, schema: type = Config):
     if args.out is not None:
         run = dataclasses.replace(config.run, out=str(args.out))
         config = dataclasses.replace(config, run=run)
+    changes = {
+        key: getattr(args, key)
+        for key in ("executor", "address", "workers")
+        if getattr(args, key, None) is not None
+    }
+    if changes:
+        if changes.get("workers", 1) < 1:
+            raise ConfigError(f"--workers: expected an integer >= 1, got {changes['workers']}")
+        config = dataclasses.replace(config, run=dataclasses.replace(config.run, **changes))
     return config
 
 

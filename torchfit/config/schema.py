@@ -13,6 +13,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
+from torchfit.errors import ConfigError
 from torchfit.fit.problem import FitOptions
 from torchfit.fit.stages import StageOptions
 from torchfit.image.chroma import ChromaKeyOptions
@@ -46,12 +47,20 @@ class RunConfig:
     Attributes:
         name: the run's name; the run folder is ``runs/<name>`` unless ``out`` is set.
         out: the run folder.
-        device: torch device of the fit.
+        device: torch device of the fit (``cpu``, ``cuda``, ``cuda:1``).
         dtype: floating-point type of the fit.
         seed: random seed.
         resume: skip subjects whose outputs are complete.
-        num_threads: torch CPU threads (None: torch's default).
+        num_threads: torch CPU threads of each fit process (None: the CPUs divided by
+            ``workers``, so that threads x workers never exceeds the CPUs).
         keep_heap: glibc malloc keeps freed memory (:func:`torchfit.solver.keep_heap`).
+        executor: ``local`` (this process, batch after batch) or ``ray`` (each batch a Ray
+            task; :mod:`torchfit.pipeline.ray_executor`).
+        address: the Ray cluster (``auto``, ``HOST:PORT``, ``ray://HOST:PORT``); None starts
+            a local cluster on this machine.
+        workers: fits at once. Ray: tasks in flight (default: the cluster's CPUs divided by
+            ``num_threads``). Local: how many fit processes share this machine (default 1),
+            which sets the default ``num_threads``.
     """
 
     name: str = "run"
@@ -62,6 +71,15 @@ class RunConfig:
     resume: bool = True
     num_threads: int | None = None
     keep_heap: bool = False
+    executor: Literal["local", "ray"] = "local"
+    address: str | None = None
+    workers: int | None = None
+
+    def __post_init__(self) -> None:
+        for key in ("num_threads", "workers"):
+            value = getattr(self, key)
+            if value is not None and value < 1:
+                raise ConfigError(f"run.{key}: expected an integer >= 1, got {value!r}")
 
 
 @dataclass(frozen=True)

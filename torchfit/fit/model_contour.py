@@ -156,6 +156,32 @@ def _widen(t: torch.Tensor, width: int) -> torch.Tensor:
     return torch.cat([t, t.new_zeros(t.shape[0], width - t.shape[1])], 1)
 
 
+def _near_boundary(
+    bpix: np.ndarray, ui: np.ndarray, vi: np.ndarray, size: tuple[int, int], tolerance: float
+) -> np.ndarray:
+    """(N,) bool: pixel (ui, vi) is within ``tolerance`` of a boundary pixel ``bpix`` (n, 2).
+
+    The exact Euclidean distance transform, computed on the boundary's bounding box widened by
+    more than ``tolerance`` only (a pixel outside it is further away; inside it the nearest
+    boundary pixel is the same as on the whole image).
+    """
+    import cv2
+
+    near = np.zeros(ui.shape, bool)
+    if not len(bpix):
+        return near
+    w, h = size
+    m = int(np.ceil(tolerance)) + 1
+    x0, y0 = max(int(bpix[:, 0].min()) - m, 0), max(int(bpix[:, 1].min()) - m, 0)
+    x1, y1 = min(int(bpix[:, 0].max()) + m + 1, w), min(int(bpix[:, 1].max()) + m + 1, h)
+    boundary = np.ones((y1 - y0, x1 - x0), np.uint8)
+    boundary[bpix[:, 1] - y0, bpix[:, 0] - x0] = 0
+    dist = cv2.distanceTransform(boundary, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    box = (ui >= x0) & (ui < x1) & (vi >= y0) & (vi < y1)
+    near[box] = dist[vi[box] - y0, ui[box] - x0] <= tolerance
+    return near
+
+
 @torch.no_grad()
 def select_contour(
     sampler: EdgeSampler,
@@ -180,7 +206,6 @@ def select_contour(
         valid sample (the residual turns that into a large constant, see
         :func:`torchfit.fit.residuals.model_to_person` and ``NO_CONTOUR_PENALTY``).
     """
-    import cv2
     from scipy.spatial import cKDTree
 
     check_shape("pixels", pixels, ("B", "V", 2))
@@ -194,18 +219,14 @@ def select_contour(
     for i in range(b):
         mask = render_silhouette(px[i].numpy(), faces, (w, h))
         masks.append(mask)
-        boundary = np.ones((h, w), np.uint8)
         outlines = outer_outlines(mask)
         bpix = (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
-        if len(bpix):
-            boundary[bpix[:, 1], bpix[:, 0]] = 0
-        dist = cv2.distanceTransform(boundary, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         p = pts[i]
         ui = np.clip(np.rint(p[:, 0]), 0, w - 1).astype(np.int64)
         vi = np.clip(np.rint(p[:, 1]), 0, h - 1).astype(np.int64)
         inside = (p[:, 0] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < h - 0.5)
         candidate = np.repeat(sampler.silhouette_edges(px[i].numpy()), sampler.k)
-        near = dist[vi, ui] <= tolerance
+        near = _near_boundary(bpix, ui, vi, (w, h), tolerance)
         on = np.flatnonzero(candidate & inside & near & (len(bpix) > 0))
         chosen.append(on)
         valid = person_valid[i].cpu().numpy()

@@ -48,6 +48,18 @@ class PersonData:
         """The padded person contour length ``C_j`` of every posture."""
         return [v.shape[1] for v in self.valid]
 
+    def to(self, device: torch.device | str) -> PersonData:
+        """The same data on ``device`` (the camera too); unchanged where it is there."""
+        if all(c.device == torch.device(device) for c in self.contours):
+            return self
+        return PersonData(
+            [c.to(device) for c in self.contours],
+            [v.to(device) for v in self.valid],
+            [d.to(device) for d in self.distance_maps],
+            self.camera.to(device=device),
+            None if self.uncertain is None else [u.to(device) for u in self.uncertain],
+        )
+
     def subset(self, index: list[int] | torch.Tensor) -> PersonData:
         """The same data for the subjects ``index`` (padding kept)."""
         idx = torch.as_tensor(index, dtype=torch.long)

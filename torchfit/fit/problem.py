@@ -394,9 +394,16 @@ class SilhouetteFit:
             if c == 0:
                 continue
             ends, vidx, lookup = self._prepare(sel)
+            # forward mode: pixel tangents of the contour vertices, c directions per subject;
+            # the pixels themselves are the primal of its first direction (no second pass)
+            rows_rep = rows.repeat_interleave(c)
+            tangent = torch.zeros(b * c, full.shape[1], **self.kw)
+            tangent[torch.arange(b * c), free[cols].repeat(b)] = 1.0
+            with fwad.dual_level():
+                dual = fwad.make_dual(full.repeat_interleave(c, dim=0), tangent)
+                primal, tan = fwad.unpack_dual(self.pose_pixels(dual, j, rows_rep, vidx))
+            pixels = primal[::c]
             # reverse mode: local derivatives of the residual entries w.r.t. endpoint pixels
-            with torch.no_grad():
-                pixels = self.pose_pixels(full, j, rows, vidx)
             pix = {
                 n: v.detach().requires_grad_(True)
                 for n, v in self._endpoint_pixels(pixels, lookup, ends).items()
@@ -410,13 +417,6 @@ class SilhouetteFit:
                 n: (g if g is not None else torch.zeros_like(pix[n]))
                 for n, g in zip(pix, grads, strict=True)
             }
-            # forward mode: pixel tangents of the contour vertices, c directions per subject
-            rows_rep = rows.repeat_interleave(c)
-            tangent = torch.zeros(b * c, full.shape[1], **self.kw)
-            tangent[torch.arange(b * c), free[cols].repeat(b)] = 1.0
-            with fwad.dual_level():
-                dual = fwad.make_dual(full.repeat_interleave(c, dim=0), tangent)
-                tan = fwad.unpack_dual(self.pose_pixels(dual, j, rows_rep, vidx)).tangent
             tan = tan.reshape(b, c, -1, 2).permute(0, 2, 1, 3)  # (B, K, c, 2)
             r = at[:, None]
             t_of = {

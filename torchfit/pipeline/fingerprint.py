@@ -51,13 +51,18 @@ FINGERPRINT_FILE = "fingerprint.json"
 #: inputs are hashed by content instead; ``model.template``: the template is hashed by
 #: content), speed settings (``run.num_threads``, ``run.keep_heap``,
 #: ``segmentation.compile``, ``fit.batch_size``: a subject's fit does not depend on the
-#: others of its batch) and the run-level TensorBoard files (``output.tensorboard``).
+#: others of its batch), where the fits run (``run.executor``, ``run.address``,
+#: ``run.workers``: a run resumes across executors) and the run-level TensorBoard files
+#: (``output.tensorboard``).
 UNFINGERPRINTED_KEYS = (
     "run.name",
     "run.out",
     "run.resume",
     "run.num_threads",
     "run.keep_heap",
+    "run.executor",
+    "run.address",
+    "run.workers",
     "data.root",
     "data.subjects",
     "model.template",

@@ -56,7 +56,7 @@ from torchfit.pipeline.runtime import apply_runtime, torch_dtype
 from torchfit.pipeline.stages import run_stages, start_params
 from torchfit.status import SubjectStatus
 
-__all__ = ["run", "fit_batch"]
+__all__ = ["run", "fit_batch", "fit_subjects", "batches"]
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +70,7 @@ def _fit(
     masks = torch.stack([p.masks[used] for p in prepared])
     shadow = torch.stack([p.shadow[used] for p in prepared])
     cameras = stack_cameras([p.subject.camera for p in prepared])
-    person = person_data(config, masks, shadow, cameras, model.dtype)
+    person = person_data(config, masks, shadow, cameras, model.dtype).to(model.device)
     fit = SilhouetteFit(model, person, config.fit, (config.model.scale_min, config.model.scale_max))
     images = torch.stack([p.images[used] for p in prepared])
     x, starts = start_params(fit, config, masks, images)
@@ -167,6 +167,59 @@ def fit_batch(
     return results
 
 
+def batches(subjects: list[Subject], size: int) -> list[list[Subject]]:
+    """``subjects`` in consecutive batches of ``size`` (the last one may be smaller)."""
+    return [subjects[start : start + size] for start in range(0, len(subjects), size)]
+
+
+def fit_subjects(
+    subjects: list[Subject],
+    model: BodyModel,
+    config: Config,
+    run_dir: Path,
+    tb=None,
+    stage_progress: Callable[[str, int], object] | None = None,
+    fingerprints: dict[str, Fingerprint] | None = None,
+) -> list[SubjectResult]:
+    """Segment and fit one batch of subjects and write their outputs under ``run_dir``.
+
+    A subject that cannot be read or segmented fails alone; a batch whose fit fails fails all
+    of its subjects (the reason in each result). This is the work of one task of any executor.
+
+    Returns:
+        One :class:`SubjectResult` per subject, failed ones included (order: the failures of
+        preparation first, then the fitted subjects in batch order).
+
+    Raises:
+        OutputError: a file cannot be written.
+    """
+    results = []
+    prepared = []
+    for subject in subjects:
+        try:
+            prepared.append(prepare_subject(subject, config))
+        except (TorchfitError, OSError) as exc:
+            log.error("%s: %s", subject.name, exc)
+            clear_outputs(run_dir / subject.name)
+            results.append(SubjectResult(subject.name, SubjectStatus.FAILED, str(exc)))
+    if not prepared:
+        return results
+    try:
+        return results + fit_batch(
+            prepared, model, config, run_dir, tb, stage_progress, fingerprints
+        )
+    except OutputError:
+        raise
+    except (TorchfitError, RuntimeError) as exc:
+        log.error("batch %s failed: %s", [p.subject.name for p in prepared], exc)
+        for p in prepared:
+            clear_outputs(run_dir / p.subject.name)
+            results.append(
+                SubjectResult(p.subject.name, SubjectStatus.FAILED, f"fit failed: {exc}")
+            )
+    return results
+
+
 def _kept(
     subjects: list[Subject], run_fp: Fingerprint, run_dir: Path, resume: bool
 ) -> tuple[dict[str, SubjectResult], dict[str, Fingerprint]]:
@@ -228,25 +281,39 @@ def run(
     """
     if not config.data.root:
         raise ConfigError("data.root is not set: pass --data DIR or set data.root in the config")
+    if config.run.executor == "ray":
+        from torchfit.pipeline.ray_executor import require_ray
+
+        require_ray()
     apply_runtime(config.run)
     subjects = load_dataset(config.data.root, config.data.subjects, config.segmentation.method)
     if not subjects:
         raise DataError(f"no subject folders found in {config.data.root}")
-    model = BodyModel(
-        config.model.template, device=config.run.device, dtype=torch_dtype(config.run.dtype)
-    )
+    # with Ray the workers fit: the driver's model (fingerprints only) stays on the CPU
+    device = config.run.device if config.run.executor == "local" else "cpu"
+    model = BodyModel(config.model.template, device=device, dtype=torch_dtype(config.run.dtype))
     run_fp = Fingerprint(config_digest(config), template_digest(model.template))
     done, fingerprints = _kept(subjects, run_fp, run_dir, config.run.resume)
     todo = [s for s in subjects if s.name not in done]
+    session = None
+    if config.run.executor == "ray" and todo:  # connect before writing anything
+        from torchfit.pipeline.ray_executor import start_ray
 
-    make_dirs(run_dir)
-    remove_temporary(run_dir)
-    write_atomic(run_dir / "config.yaml", config_to_yaml(config))
+        session = start_ray(config.run)
+
+    try:
+        make_dirs(run_dir)
+        remove_temporary(run_dir)
+        write_atomic(run_dir / "config.yaml", config_to_yaml(config))
+    except OutputError:
+        if session is not None:
+            session.close()
+        raise
     bar = progress(len(subjects)) if progress else None
     if bar and done:
         bar.update(len(done))
     tb = None
-    if config.output.tensorboard and todo:
+    if config.output.tensorboard and todo and config.run.executor == "local":
         from torchfit.pipeline.tensorboard import TensorBoardCallback
 
         tb = TensorBoardCallback(run_dir / "tb", "fit")
@@ -258,34 +325,19 @@ def run(
         write_summary([done[s.name] for s in subjects if s.name in done], run_dir / "summary.csv")
 
     try:
-        for start in range(0, len(todo), config.fit.batch_size):
-            prepared = []
-            for subject in todo[start : start + config.fit.batch_size]:
-                try:
-                    prepared.append(prepare_subject(subject, config))
-                except (TorchfitError, OSError) as exc:
-                    log.error("%s: %s", subject.name, exc)
-                    clear_outputs(run_dir / subject.name)
-                    finish(SubjectResult(subject.name, SubjectStatus.FAILED, str(exc)))
-            if not prepared:
-                continue
-            try:
-                results = fit_batch(
-                    prepared, model, config, run_dir, tb, stage_progress, fingerprints
-                )
-            except OutputError:
-                raise
-            except (TorchfitError, RuntimeError) as exc:
-                log.error("batch %s failed: %s", [p.subject.name for p in prepared], exc)
-                results = []
-                for p in prepared:
-                    clear_outputs(run_dir / p.subject.name)
-                    results.append(
-                        SubjectResult(p.subject.name, SubjectStatus.FAILED, f"fit failed: {exc}")
-                    )
-            for result in results:
-                finish(result)
+        if session is not None:
+            from torchfit.pipeline.ray_executor import run_on_ray
+
+            run_on_ray(session, todo, config, run_dir, fingerprints, finish)
+        else:
+            for batch in batches(todo, config.fit.batch_size):
+                for result in fit_subjects(
+                    batch, model, config, run_dir, tb, stage_progress, fingerprints
+                ):
+                    finish(result)
     finally:
+        if session is not None:
+            session.close()
         if tb is not None:
             tb.close()
         if bar:

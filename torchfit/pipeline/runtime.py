@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import logging
+import os
 
 import torch
 
 from torchfit.config.schema import RunConfig
+from torchfit.errors import ConfigError
 from torchfit.solver import keep_heap
 
-__all__ = ["apply_runtime", "torch_dtype"]
+__all__ = ["apply_runtime", "torch_dtype", "cpu_count", "local_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -19,9 +21,39 @@ def torch_dtype(name: str) -> torch.dtype:
     return torch.float64 if name == "float64" else torch.float32
 
 
-def apply_runtime(run: RunConfig) -> None:
-    """Set the torch thread count and glibc's heap policy as ``run`` asks."""
+def cpu_count() -> int:
+    """The CPUs this process may run on (its affinity mask, else the machine's)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def local_threads(run: RunConfig, cores: int | None = None) -> int:
+    """Torch threads of a local run: ``run.num_threads``; else the CPUs shared by
+    ``run.workers`` processes (default 1), so that threads x workers <= CPUs, and no more than
+    ``OMP_NUM_THREADS`` where the environment sets it."""
     if run.num_threads:
-        torch.set_num_threads(run.num_threads)
+        return run.num_threads
+    cores = cpu_count() if cores is None else cores
+    threads = max(1, cores // (run.workers or 1))
+    omp = os.environ.get("OMP_NUM_THREADS", "")
+    return min(threads, int(omp)) if omp.isdigit() and int(omp) > 0 else threads
+
+
+def apply_runtime(run: RunConfig) -> None:
+    """Set the torch thread count (:func:`local_threads`), check the device and set glibc's
+    heap policy as ``run`` asks.
+
+    Raises:
+        ConfigError: ``run.device`` names a device torch cannot use here.
+    """
+    torch.set_num_threads(local_threads(run))
+    try:
+        device = torch.device(run.device)
+    except RuntimeError as exc:
+        raise ConfigError(f"run.device: {exc}") from None
+    if device.type == "cuda" and run.executor == "local" and not torch.cuda.is_available():
+        raise ConfigError(f"run.device: {run.device!r} but torch sees no CUDA device here")
     if run.keep_heap and not keep_heap():
         log.warning("run.keep_heap: the C library is not glibc; the setting has no effect")
