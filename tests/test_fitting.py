@@ -39,9 +39,9 @@ def subjects(tmp_path_factory, model):
 
 
 def segmented(subjects) -> torch.Tensor:
-    """(B, 6, H, W) silhouettes of the subjects (the colour test alone: these tests are about
-    the fit, on the silhouettes they were written for)."""
-    cfg = SegmentationOptions(gamma=0.05, shadow_test=False)
+    """(B, 6, H, W) silhouettes of the subjects (the colour test alone, no outline test: these
+    tests are about the fit, on the silhouettes they were written for)."""
+    cfg = SegmentationOptions(gamma=0.05, shadow_test=False, edge_width=0)
     masks = []
     for s in subjects:
         background, _ = load_frames(s.background)

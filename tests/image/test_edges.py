@@ -89,7 +89,7 @@ def test_nothing_is_dropped_where_person_and_background_are_alike_or_width_is_ze
     assert torch.equal(refine_edges(image, model, empty, 2), empty)
 
 
-def test_a_shaded_outline_stays_person_and_the_test_is_off_by_default() -> None:
+def test_a_shaded_outline_stays_person_and_the_test_is_on_by_default() -> None:
     frames, image, cover = _scene((0.15, 0.2, 0.5))
     model = fit_background(frames)
     truth = (cover >= 0.5)[None, None]
@@ -105,9 +105,9 @@ def test_a_shaded_outline_stays_person_and_the_test_is_off_by_default() -> None:
     solid = torch.where(truth, person, model.rgb_mean)
     shaded = quantise(torch.where(rim, 0.4 * person, solid))
     assert torch.equal(refine_edges(shaded, model, truth, 2), truth)
-    assert SegmentationOptions().edge_width == 0
-    plain = segment(image, model, SegmentationOptions(edge_width=0)).masks
-    assert torch.equal(segment(image, model).masks, plain)
+    assert SegmentationOptions().edge_width == 2
+    on = segment(image, model, SegmentationOptions(edge_width=2)).masks
+    assert torch.equal(segment(image, model).masks, on)
 
 
 def test_outline_test_checks_its_arguments() -> None:

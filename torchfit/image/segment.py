@@ -12,8 +12,8 @@ takes for a cast shadow, anywhere in the frame (floor, walls, furniture), become
 again (with the optional floor heuristics: only within the lowest ``shadow_band`` of the
 foreground, and with ``shadow_bridge`` not between the body and a part cut off below it); then
 :func:`clean_mask`:
-opening, largest 8-connected region, closing and hole filling; last, with ``edge_width`` (off
-by default), the outline's mixed pixels that are more background than person become
+opening, largest 8-connected region, closing and hole filling; last, with ``edge_width`` (2
+by default; 0 turns it off), the outline's mixed pixels that are more background than person become
 background (:func:`~torchfit.image.edges.refine_edges`). ``fill_holes`` fills background
 regions enclosed by the silhouette; with ``max_hole_area`` only those up to that fraction of
 the silhouette's area, so that a large enclosed gap (between the legs, closed below by a shadow
@@ -102,10 +102,9 @@ class SegmentationOptions:
     # within edge_width pixels of the outside, a pixel that is more background than person
     # (its colour as a mix of the background's and a shade of the person's next to it) is
     # background, where the background is edge_separation noise deviations off the person's
-    # colour line (torchfit.image.edges); 0 (the default) off. It raises precision on the
-    # synthetic rooms, but the initial guess's upper-arm estimate moves with the outline,
-    # so it is not on by default (benchmarks/RESULTS.md)
-    edge_width: int = 0
+    # colour line (torchfit.image.edges); 0: off. The default 2 was chosen on the development
+    # sets' segmentation and fit accuracy (benchmarks/RESULTS.md)
+    edge_width: int = 2
     edge_separation: float = 6.0
     # run the per-pixel colour test through torch.compile (needs a C++ compiler on CPU; about a
     # minute to compile the first time, cached afterwards; several times faster per frame)
