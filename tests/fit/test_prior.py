@@ -1,0 +1,182 @@
+"""The population prior (ANSUR II) and the known height in the fit.
+
+Checks: the shipped prior loads and its residuals are ``weight * L^-1 (log s - mu)`` computed
+from the file directly; the Jacobian of the added entries matches central differences; a known
+height pulls the fitted height to it; the prior does not override the images on a subject
+whose thigh is at the population's 1st or 99th percentile given the rest of the body.
+"""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from template_subjects import make_template_subject
+
+from torchfit.body.measure import measure_model
+from torchfit.camera import stack_cameras
+from torchfit.errors import ConfigError
+from torchfit.fit import StageOptions, person_data_from_masks, solve_stage
+from torchfit.fit.prior import (
+    PRIOR_DIR,
+    KnownFacts,
+    PriorFit,
+    PriorOptions,
+    load_prior,
+    neutral_height,
+)
+from torchfit.image import SegmentationOptions, fit_background, segment
+from torchfit.io.dataset import load_subject
+from torchfit.io.images import load_frames
+from torchfit.solver import LMOptions
+
+#: the weight the shipped configs use (configs/benchmark.yaml, the schema's default)
+WEIGHT = PriorOptions().weight or 1.0
+
+
+def _masks(subjects) -> torch.Tensor:
+    cfg = SegmentationOptions(gamma=0.05, shadow_test=False)
+    out = []
+    for s in subjects:
+        background, _ = load_frames(s.background)
+        images, _ = load_frames(s.poses)
+        out.append(segment(images, fit_background(background, cfg), cfg).masks[:, 0])
+    return torch.stack(out)
+
+
+def _problem(model, subjects, facts=None, weight=WEIGHT, tolerance=0.005):
+    person = person_data_from_masks(_masks(subjects), stack_cameras([s.camera for s in subjects]))
+    options = PriorOptions(weight=weight, height_tolerance_m=tolerance)
+    return PriorFit(model, person, prior=load_prior("ansur2"), prior_options=options, facts=facts)
+
+
+@pytest.fixture(scope="module")
+def plain(tmp_path_factory, model):
+    root = tmp_path_factory.mktemp("prior_plain")
+    truth = make_template_subject(root / "s", model, scale=1.03, seed=5)
+    return load_subject(root / "s"), truth
+
+
+def test_prior_file_residuals_are_the_whitened_log_scales(model, plain):
+    doc = json.loads((PRIOR_DIR / "ansur2.json").read_text())
+    facts = [KnownFacts(sex="female")]
+    fit = _problem(model, [plain[0]], facts, weight=0.7)
+    assert fit.prior.entries == tuple(doc["entries"])  # mpeg4_full has every entry
+    g = torch.Generator().manual_seed(1)
+    x = fit.initial_params()
+    x[:, fit.layout.scales] += 0.05 * torch.randn(1, fit.layout.num_scale_params, generator=g)
+    ours = fit.prior_residual(x, torch.tensor([0]))[0].numpy()
+    comp = doc["components"]["female"]
+    chol = np.array(comp["cholesky"])
+    template_height = float(
+        measure_model(model, torch.ones(1, model.num_segments, 3))["height_m"][0]
+    )
+    offsets = (doc.get("calibration") or {}).get("offsets", {})
+    shift = np.array([offsets.get(e, 0.0) for e in doc["entries"]])
+    mu = np.array(comp["mean"]) + shift - math.log(template_height)
+    cols = [fit.layout.scale_column(*e.split(":")) for e in doc["entries"]]
+    log_s = np.log(x[0, cols].numpy())
+    direct = 0.7 * np.linalg.solve(chol, log_s - mu)
+    np.testing.assert_allclose(ours, direct, rtol=1e-6, atol=1e-8)
+    # and the residual row carries them where the layout says
+    r = fit.residual(x)
+    np.testing.assert_allclose(r[0, fit.residual_layout.prior].numpy(), direct, rtol=1e-6)
+
+
+def test_unknown_prior_is_named():
+    with pytest.raises(ConfigError, match="unknown prior 'nope'"):
+        load_prior("nope")
+    with pytest.raises(ConfigError, match="weight"):
+        PriorOptions(weight=-1)
+
+
+def test_added_rows_of_the_jacobian_match_central_differences(model, plain):
+    fit = _problem(model, [plain[0]], [KnownFacts(height_m=1.70, sex="male")], weight=1.3)
+    g = torch.Generator().manual_seed(0)
+    x = fit.initial_params() + 0.02 * torch.randn(
+        1, fit.num_params, generator=g, dtype=torch.float64
+    )
+    sel = fit.select(x)
+    free = torch.arange(fit.layout.num_scale_params)
+    jac = fit.jacobian(x, free, sel)
+    rl = fit.residual_layout
+    rows = list(range(rl.prior.start, rl.facts.stop))
+    h = 1e-6
+    for p in free.tolist():
+        plus, minus = x.clone(), x.clone()
+        plus[0, p] += h
+        minus[0, p] -= h
+        fd = (fit.residual(plus, sel) - fit.residual(minus, sel))[:, rows] / (2 * h)
+        torch.testing.assert_close(
+            jac[:, rows, p], fd, atol=1e-4 * max(float(fd.abs().max()), 1.0), rtol=0
+        )
+    assert float(jac[0, rl.facts.start].abs().sum()) > 0
+
+
+def test_known_height_pulls_the_fitted_height(model, plain):
+    subject, truth = plain
+    given = truth["height_m"] * 0.97  # 5 cm off what the images show
+    stage, options = StageOptions(name="all"), LMOptions(max_iter=25)
+    heights = []
+    for facts in ([KnownFacts()], [KnownFacts(height_m=given)]):
+        fit = _problem(model, [subject], facts, weight=0.0, tolerance=0.001)
+        x, _ = solve_stage(fit, fit.initial_params(), stage, options)
+        heights.append(float(neutral_height(model, fit.layout, x)[0]))
+    free, known = heights
+    # the images alone give the height (one pixel is about 5 mm at 360x288)
+    assert abs(free / truth["height_m"] - 1) < 0.02
+    assert abs(known - given) < 0.2 * abs(free - given), (free, known, given)
+
+
+def _thigh_subject(folder, model, z: float, prior) -> dict:
+    """The template with its thigh length at the prior's z-score ``z`` given everything else
+    (every other entry at the template's own value); returns its truth."""
+    k = prior.entries.index("thigh:z")
+    cov, mean = prior.covariance["any"].numpy(), prior.mean["any"].numpy()
+    template_height = float(
+        measure_model(model, torch.ones(1, model.num_segments, 3))["height_m"][0]
+    )
+    mu = mean - math.log(template_height)
+    others = [i for i in range(len(mean)) if i != k]
+    gain = np.linalg.solve(cov[np.ix_(others, others)], cov[others, k])
+    cond_mean = mu[k] + gain @ (0.0 - mu[others])
+    cond_sd = math.sqrt(cov[k, k] - cov[others, k] @ gain)
+    scales = torch.ones(1, model.num_segments, 3, dtype=model.dtype)
+    for side in ("l_thigh", "r_thigh"):
+        scales[0, model.template.segments.index(side), 2] = math.exp(cond_mean + z * cond_sd)
+    return make_template_subject(folder, model, seed=7, scales=scales)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("z", [-2.326, 2.326])  # the 1st and 99th percentiles
+def test_prior_does_not_override_clear_image_evidence(tmp_path, model, z):
+    prior = load_prior("ansur2")
+    truth = _thigh_subject(tmp_path / "s", model, z, prior)
+    subject = load_subject(tmp_path / "s")
+    fit = _problem(model, [subject], weight=WEIGHT)
+    x = fit.initial_params()
+    for stage in (
+        StageOptions(name="a", scales=("legs", "upper_body"), loss="linear"),
+        StageOptions(),
+    ):
+        x, _ = solve_stage(fit, x, stage, LMOptions(max_iter=30))
+    scales = model.expand_scales(fit.layout.group_scales(x))
+    fitted = measure_model(model, scales)["thigh_m"][0]
+    template = measure_model(model, torch.ones(1, model.num_segments, 3))["thigh_m"][0]
+    # the fit keeps most of the distance of the thigh from the population's expectation
+    off_truth = abs(float(fitted) / truth["thigh_m"] - 1)
+    off_template = abs(truth["thigh_m"] / float(template) - 1)
+    assert off_truth < 0.25 * off_template, (float(fitted), truth["thigh_m"], float(template))
+
+
+def test_params_record_the_facts_used(model, plain):
+    from torchfit.pipeline.run import facts_record
+
+    facts = [KnownFacts(height_m=1.71, weight_kg=80.0, sex="male")]
+    record = facts_record(_problem(model, [plain[0]], facts, weight=0.5), 0)
+    assert record["known_facts"] == {"height_m": 1.71, "weight_kg": 80.0, "sex": "male"}
+    assert record["facts_used"]["height_m"] == {"value": 1.71, "tolerance_m": 0.005}
+    assert record["facts_used"]["sex"] == "prior component 'male'"
+    assert "weight_kg" not in record["facts_used"]  # known, recorded, not used by the fit
+    assert record["prior"] == {"name": "ansur2", "weight": 0.5, "component": "male"}
