@@ -57,11 +57,14 @@ class PriorOptions:
             of the population as ``weight`` pixels of contour RMS in one posture.
         height_tolerance_m: the height error (metres) that costs as much as one pixel of
             contour RMS in one posture, when ``subject.yaml`` gives the height.
+        entries: the prior's scale entries (``group:axis``) the fit uses (their marginal);
+            None: all of the file's.
     """
 
     name: str = "ansur2"
     weight: float = 0.0
     height_tolerance_m: float = 0.005
+    entries: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.weight) and self.weight >= 0):
@@ -196,7 +199,16 @@ class PriorFit(SilhouetteFit):
         if len(self.facts) != self.batch:
             raise DataError(f"facts: expected {self.batch} entries, got {len(self.facts)}")
         kw = self.kw
-        present = [e for e in (prior.entries if prior else ()) if self._column(e) is not None]
+        wanted = prior_options.entries
+        if prior is not None and wanted is not None:
+            unknown = sorted(set(wanted) - set(prior.entries))
+            if unknown:
+                raise ConfigError(
+                    f"fit.prior.entries: {unknown} not in prior {prior.name!r} "
+                    f"(entries: {list(prior.entries)})"
+                )
+        chosen = [e for e in (prior.entries if prior else ()) if wanted is None or e in wanted]
+        present = [e for e in chosen if self._column(e) is not None]
         self.prior = prior.restrict(present) if prior is not None and present else None
         self.prior_columns = torch.tensor(
             [self._column(e) for e in present], dtype=torch.long, device=model.device
