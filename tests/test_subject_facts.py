@@ -42,3 +42,17 @@ def test_not_a_mapping_and_bad_yaml(tmp_path):
     (tmp_path / "subject.yaml").write_text("height_m: [1.7\n")
     problems = load_subject(tmp_path).problems
     assert any("subject.yaml: invalid YAML" in p for p in problems)
+
+
+def test_subject_yaml_counts_in_the_fingerprint(tmp_path, model):
+    from template_subjects import make_template_subject
+
+    from torchfit.pipeline.fingerprint import inputs_digest
+
+    make_template_subject(tmp_path / "s", model, seed=2)
+    before = inputs_digest(load_subject(tmp_path / "s"))
+    (tmp_path / "s" / "subject.yaml").write_text("height_m: 1.7\n")
+    with_height = inputs_digest(load_subject(tmp_path / "s"))
+    (tmp_path / "s" / "subject.yaml").write_text("height_m: 1.71\n")
+    changed = inputs_digest(load_subject(tmp_path / "s"))
+    assert len({before, with_height, changed}) == 3

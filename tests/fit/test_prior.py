@@ -159,30 +159,34 @@ def _percentile_subject(folder, model, entry: str, z: float, prior) -> tuple[dic
 @pytest.mark.parametrize("z", [-2.326, 2.326])  # the 1st and 99th percentiles
 def test_prior_does_not_override_clear_image_evidence(tmp_path, model, z):
     """A lower leg at the population's 1st / 99th percentile given the rest of the body (the
-    knee height, which the bent-knee postures show): the fit with the prior follows the images,
-    not what the prior expects from the rest of the body."""
+    knee height, which the bent-knee postures show): the fit with the prior stays where the
+    images alone put it, not where the prior expects it from the rest of the body."""
     prior = load_prior("ansur2")
     if ENTRIES is not None:
         prior = prior.restrict(ENTRIES)
     truth, expected = _percentile_subject(tmp_path / "s", model, "calf:z", z, prior)
     subject = load_subject(tmp_path / "s")
-    fit = _problem(model, [subject], weight=WEIGHT, entries=ENTRIES)
-    x = fit.initial_params()
-    for stage in (
-        StageOptions(name="a", scales=("legs", "upper_body"), loss="linear"),
-        StageOptions(),
-    ):
-        x, _ = solve_stage(fit, x, stage, LMOptions(max_iter=30))
-    fitted = float(
-        measure_model(model, model.expand_scales(fit.layout.group_scales(x)))["lower_leg_m"][0]
-    )
-    ones = torch.ones(1, model.num_segments, 3)
+    knee = {}
+    for weight in (0.0, WEIGHT):
+        fit = _problem(model, [subject], weight=weight, entries=ENTRIES)
+        x = fit.initial_params()
+        for stage in (
+            StageOptions(name="a", scales=("legs", "upper_body"), loss="linear"),
+            StageOptions(),
+        ):
+            x, _ = solve_stage(fit, x, stage, LMOptions(max_iter=30))
+        scales = model.expand_scales(fit.layout.group_scales(x))
+        knee[weight] = float(measure_model(model, scales)["lower_leg_m"][0])
     # the knee height is the calf plus the ankle height (not scaled here)
-    template = measure_model(model, ones)
-    ankle = float(template["lower_leg_m"][0]) - _calf_length(model)
+    ones = torch.ones(1, model.num_segments, 3)
+    ankle = float(measure_model(model, ones)["lower_leg_m"][0]) - _calf_length(model)
     prior_guess = ankle + _calf_length(model) * expected
-    true = truth["lower_leg_m"]
-    assert abs(fitted - true) < 0.5 * abs(prior_guess - true), (fitted, true, prior_guess)
+    true, images, with_prior = truth["lower_leg_m"], knee[0.0], knee[WEIGHT]
+    # the images put the knee on the truth's side of what the prior expects ...
+    assert (images - prior_guess) * (true - prior_guess) > 0, (images, true, prior_guess)
+    # ... and the prior moves it less than a quarter of the way to its expectation
+    moved = abs(with_prior - images)
+    assert moved < 0.25 * abs(prior_guess - images), (with_prior, images, true, prior_guess)
 
 
 def _calf_length(model) -> float:
