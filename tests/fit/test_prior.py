@@ -206,3 +206,21 @@ def test_params_record_the_facts_used(model, plain):
     assert record["facts_used"]["sex"] == "prior component 'male'"
     assert "weight_kg" not in record["facts_used"]  # known, recorded, not used by the fit
     assert record["prior"] == {"name": "ansur2", "weight": 0.5, "component": "male"}
+
+
+def test_shipped_prior_is_what_make_prior_derives(shared_data):
+    import importlib.util
+    import sys
+
+    sys.path.insert(0, str(REPO_ROOT / "tools"))
+    spec = importlib.util.spec_from_file_location(
+        "make_prior", REPO_ROOT / "tools" / "make_prior.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    derived = module.derive(shared_data / "ansur2")
+    shipped = json.loads((PRIOR_DIR / "ansur2.json").read_text())
+    assert derived["entries"] == shipped["entries"]
+    assert derived["components"] == shipped["components"]
+    assert shipped["components"]["male"]["n"] == 4082
+    assert shipped["components"]["female"]["n"] == 1986
