@@ -30,9 +30,17 @@ def _background(rng: np.random.Generator) -> np.ndarray:
 
 
 def make_template_subject(
-    folder: Path, model: BodyModel, scale: float = 1.0, seed: int = 0, azimuth_deg: float = 30.0
+    folder: Path,
+    model: BodyModel,
+    scale: float = 1.0,
+    seed: int = 0,
+    azimuth_deg: float = 30.0,
+    scales: torch.Tensor | None = None,
 ) -> dict:
-    """Write one subject folder (design.md section 3 layout); returns its truth measurements."""
+    """Write one subject folder (design.md section 3 layout); returns its truth measurements.
+
+    ``scales`` (1, S, 3), when given, are the body's segment scales (``scale`` is then unused).
+    """
     rng = np.random.default_rng(seed)
     camera = nominal_view(distance=3.5, azimuth_deg=azimuth_deg, focal=450.0, image_size=SIZE)
     save_camera(camera, folder / "camera.yaml")
@@ -42,7 +50,8 @@ def make_template_subject(
     noise = lambda img: np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)  # noqa: E731
     for i in range(5):
         cv2.imwrite(str(folder / "background" / f"bg{i:02d}.png"), noise(bg.astype(np.float64)))
-    scales = torch.full((1, model.num_segments, 3), scale, dtype=model.dtype)
+    if scales is None:
+        scales = torch.full((1, model.num_segments, 3), scale, dtype=model.dtype)
     for posture in POSTURES:
         image = render_pose_preview(model, camera, posture, scales, background=bg, outline=False)
         cv2.imwrite(

@@ -145,8 +145,8 @@ def test_markdown_table(folders):
     assert lines[0] == "# Accuracy benchmark: template (no fit)"
     assert "Baseline, not a fit result" in text
     assert "failed: 1 (excluded from the means)" in text
-    assert "| height | 2 | 10.0 | +0.0 | 10.0 | 2.1 |" in lines
-    assert "| thigh | 2 | 10.0 | +0.0 | 10.0 | — |" in lines
+    assert "| height | 2 | 10.0 | +0.0 | 10.0 | — | — | 2.1 |" in lines
+    assert "| thigh | 2 | 10.0 | +0.0 | 10.0 | — | — | — |" in lines
     for key, pct in PAPER_TABLE1_PCT.items():
         assert any(line.endswith(f"| {pct:.1f} |") and key[:3] in line for line in lines)
     alice = next(line for line in lines if line.startswith("| alice |"))
@@ -180,7 +180,7 @@ def test_fit_results_are_not_called_a_baseline(tmp_path):
     text = format_markdown(rows, summarize(rows), notes=notes)
     assert text.startswith("# Accuracy benchmark: fit\n")
     assert "Baseline" not in text
-    assert "| height | 1 | 2.0 | +2.0 | 2.0 | 2.1 |" in text
+    assert "| height | 1 | 2.0 | +2.0 | 2.0 | — | — | 2.1 |" in text
 
 
 def test_csv(folders, tmp_path):
@@ -319,7 +319,7 @@ def test_tool_report_from_results(benchmark_tool, folders, tmp_path, capsys):
     assert "3 with truth, 1 failed" in stdout
     text = (out / "report.md").read_text()
     assert f"- Data: `{data}`" in text
-    assert "| lower leg | 2 | 10.0 | +0.0 | 10.0 | 7.6 |" in text
+    assert "| lower leg | 2 | 10.0 | +0.0 | 10.0 | — | — | 7.6 |" in text
     assert (out / "report.png").stat().st_size > 10_000
 
 

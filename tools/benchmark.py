@@ -14,7 +14,11 @@ every subject, the no-fit baseline a fit must beat (status "template", seconds n
 
 Report files: report.md (method, mean absolute % error per measurement beside the first
 paper's Table 1, per-subject true / fitted / error %), report.csv (per subject),
-report_summary.csv (per measurement) and report.png (fitted against true). The method line
+report_summary.csv (per measurement) and report.png (fitted against true). Beside each
+measurement's error the report gives the error of the trivial predictor, a leave-one-out
+regression on the true height fitted to the same subjects' truth, and marks which measurements
+beat it; its header says which subjects had known facts (``subject.yaml``; make a copy of a
+synthetic set with them by ``tools/add_known_facts.py``). The method line
 says whether the numbers are a fit or the template baseline (status "template", no fit).
 Exit status: 0, 1 when some subjects failed (the report is still written), 2 on an error.
 """
@@ -64,6 +68,16 @@ def _subject_folders(root: str | Path, names: list[str] | None) -> dict[str, Pat
     return {s.name: s.folder for s in load_dataset(root, names)}
 
 
+def _facts_setting(root: str | Path, names) -> dict[str, str]:
+    """A header line saying which subjects had known facts (``subject.yaml``), if any."""
+    subjects = [s for s in load_dataset(root, list(names)) if s.facts]
+    if not subjects:
+        return {"known facts (subject.yaml)": "none"}
+    keys = sorted({k for s in subjects for k in s.facts})
+    counts = ", ".join(f"{k} for {sum(k in s.facts for s in subjects)}" for k in keys)
+    return {"known facts (subject.yaml)": f"{counts} of {len(names)} subjects"}
+
+
 class _Run(NamedTuple):
     results: list  # one pipeline SubjectResult or report SubjectOutcome per subject
     truths: dict[str, dict[str, float]]
@@ -90,7 +104,8 @@ def _fit(args: argparse.Namespace) -> _Run:
     from torchfit.pipeline import run  # imports the body model stack
 
     results = run(config, run_dir, progress=_progress)
-    return _Run(results, truths, Path(config.data.root), run_dir, notes, _settings(run_dir))
+    settings = {**_settings(run_dir), **_facts_setting(config.data.root, truths)}
+    return _Run(results, truths, Path(config.data.root), run_dir, notes, settings)
 
 
 def _template_baseline(args: argparse.Namespace) -> _Run:
@@ -132,7 +147,8 @@ def _from_results(args: argparse.Namespace) -> _Run:
     notes += [
         f"{r.name}: skipped, no subject folder in {root}" for r in results if r.name not in wanted
     ]
-    return _Run(results, truths, Path(root), run_dir, notes, _settings(run_dir))
+    settings = {**_settings(run_dir), **_facts_setting(root, truths)}
+    return _Run(results, truths, Path(root), run_dir, notes, settings)
 
 
 def _settings(run_dir: Path) -> dict[str, str]:
@@ -144,6 +160,9 @@ def _settings(run_dir: Path) -> dict[str, str]:
     except (OSError, yaml.YAMLError, AttributeError):
         return {}
     keys = {"template": model.get("template"), "jacobian": solver.get("jacobian")}
+    prior = (saved.get("fit") or {}).get("prior") or {}
+    if prior:
+        keys["prior"] = f"{prior.get('name')}, weight {prior.get('weight')}"
     if method not in (None, "autograd_lm"):  # the baseline's runs say so
         keys["method"] = method
     return {f"config {k}": str(v) for k, v in keys.items() if v is not None}

@@ -38,14 +38,21 @@ RATIOS: dict[str, tuple[str, dict[str, int]]] = {
 PERCENTILES = (0.5, 99.5)
 
 
-def read_ansur(folder: Path) -> dict[str, np.ndarray]:
-    """The columns of both ANSUR II files, men and women stacked (lower-case names)."""
-    columns: dict[str, list[float]] = {}
+def read_ansur(folder: Path, wanted: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+    """Columns of both ANSUR II files, men and women stacked (lower-case names, millimetres).
+
+    ``wanted`` names the columns (default: ``stature`` and those of :data:`RATIOS`); the
+    result also holds ``sex``, ``"male"`` or ``"female"`` per row.
+    """
+    if wanted is None:
+        wanted = ("stature", *sorted({c for _, cols in RATIOS.values() for c in cols}))
+    columns: dict[str, list] = {}
     for name, encoding in (("MALE", "latin-1"), ("FEMALE", "utf-8")):
         with (folder / f"ANSUR_II_{name}_Public.csv").open(encoding=encoding) as f:
             for row in csv.DictReader(f):
-                for key in ("stature", *{c for _, cols in RATIOS.values() for c in cols}):
+                for key in wanted:
                     columns.setdefault(key, []).append(float(row[key]))
+                columns.setdefault("sex", []).append(name.lower())
     return {k: np.asarray(v) for k, v in columns.items()}
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from torchfit.errors import ConfigError
+from torchfit.fit.prior import PriorOptions
 from torchfit.fit.problem import FitOptions
 from torchfit.fit.stages import StageOptions
 from torchfit.image.chroma import ChromaKeyOptions
@@ -183,6 +184,8 @@ class FitConfig(FitOptions):
         max_contour_rms_px: a fitted subject whose model contour is on average further than
             this from the person's contour in some posture (e_M, pixels) gets status
             ``poor_fit`` (check its overlays).
+        prior: the population prior over the log scales and the weight of a known height
+            (:class:`torchfit.fit.prior.PriorOptions`; ``subject.yaml`` gives the facts).
     """
 
     stages: tuple[StageOptions, ...] = field(default_factory=_default_stages)
@@ -190,6 +193,7 @@ class FitConfig(FitOptions):
     initial_guess: Literal["template", "parts"] = "template"
     batch_size: int = 4
     max_contour_rms_px: float = 15.0
+    prior: PriorOptions = field(default_factory=PriorOptions)
 
 
 @dataclass(frozen=True)

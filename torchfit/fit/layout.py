@@ -9,7 +9,8 @@ Parameters per subject (one row of ``x``, ``(B, P)``):
 
 Residuals per subject (one row of ``r``, ``(B, M)``): for every fitted posture, e_P (one entry
 per person contour pixel, padded to the batch maximum ``C_j``) followed by e_M (one entry);
-then e_B, one entry per parameter.
+then e_B, one entry per parameter; then, where the problem has them (:mod:`torchfit.fit.prior`),
+e_S, one entry per prior scale entry, and e_H, the known-height entry.
 
 Every other module asks :class:`ParamLayout` and :class:`ResidualLayout` where a parameter or a
 residual lives instead of computing offsets itself.
@@ -232,9 +233,14 @@ class ParamLayout:
         """The free DOF names of posture j."""
         return [self.dof_names[d] for d in self.blocks[j].dofs]
 
-    def residual_layout(self, contour_lengths: Sequence[int]) -> ResidualLayout:
-        """The residual layout for padded person contour lengths ``C_j`` (``poses`` order)."""
-        return ResidualLayout(self.poses, tuple(contour_lengths), self.num_params)
+    def residual_layout(
+        self, contour_lengths: Sequence[int], num_prior: int = 0, num_facts: int = 0
+    ) -> ResidualLayout:
+        """The residual layout for padded person contour lengths ``C_j`` (``poses`` order),
+        with ``num_prior`` prior entries and ``num_facts`` known-fact entries after e_B."""
+        return ResidualLayout(
+            self.poses, tuple(contour_lengths), self.num_params, num_prior, num_facts
+        )
 
 
 @dataclass(frozen=True)
@@ -245,11 +251,15 @@ class ResidualLayout:
         poses: the fitted postures, in order.
         contour_lengths: padded person contour length ``C_j`` of each posture.
         num_params: number of barrier entries (one per parameter).
+        num_prior: number of prior entries e_S (after e_B).
+        num_facts: number of known-fact entries e_H (after e_S).
     """
 
     poses: tuple[int, ...]
     contour_lengths: tuple[int, ...]
     num_params: int
+    num_prior: int = 0
+    num_facts: int = 0
 
     def block(self, j: int) -> slice:
         """Columns of posture j's ``[e_P..., e_M]``."""
@@ -273,9 +283,19 @@ class ResidualLayout:
         return slice(start, start + self.num_params)
 
     @property
+    def prior(self) -> slice:
+        """Columns of e_S (empty without a prior)."""
+        return slice(self.barrier.stop, self.barrier.stop + self.num_prior)
+
+    @property
+    def facts(self) -> slice:
+        """Columns of e_H (empty without known facts)."""
+        return slice(self.prior.stop, self.prior.stop + self.num_facts)
+
+    @property
     def size(self) -> int:
         """M, the width of a residual row."""
-        return self.barrier.stop
+        return self.facts.stop
 
     def per_pose_quality(self, r: torch.Tensor) -> dict[int, tuple[float, float]]:
         """Posture -> (RMS of e_P, e_M) in pixels for one residual row ``r`` (M,)."""

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from torchfit.camera import Camera
 from torchfit.errors import CameraError, DataError
 from torchfit.io.camera import load_camera, load_stereo_cameras
@@ -32,6 +34,10 @@ __all__ = [
     "load_subject",
     "validate_subject",
     "validate_truth",
+    "validate_facts",
+    "FACT_KEYS",
+    "SEXES",
+    "HEIGHT_RANGE_M",
     "load_dataset",
 ]
 
@@ -41,6 +47,13 @@ IMAGE_EXTENSIONS: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".
 N_POSES = 6
 #: Fewest background frames a subject (and each stereo view) needs.
 MIN_BACKGROUND_FRAMES = 5
+#: Keys of the optional ``subject.yaml`` (facts known about the subject).
+FACT_KEYS: tuple[str, ...] = ("height_m", "weight_kg", "sex")
+#: The values of ``subject.yaml``'s ``sex``.
+SEXES: tuple[str, ...] = ("female", "male")
+#: The heights (metres) and weights (kg) ``subject.yaml`` may give.
+HEIGHT_RANGE_M: tuple[float, float] = (1.0, 2.5)
+WEIGHT_RANGE_KG: tuple[float, float] = (20.0, 300.0)
 #: Capture names of ``truth.json`` ``joints_world``.
 CAPTURE_NAMES: tuple[str, ...] = tuple(f"pose{i}" for i in range(1, N_POSES + 1)) + ("stereo",)
 #: Where the silhouettes come from (``segmentation.method``): ``auto`` takes a subject's own
@@ -78,6 +91,8 @@ class Subject:
         poses: the six posture image paths ``pose1`` … ``pose6``, in order (a missing one is
             the path where it was expected).
         truth: the parsed ``truth.json``, or None where absent or invalid.
+        facts: what the optional ``subject.yaml`` says (keys of :data:`FACT_KEYS`); empty
+            where absent or invalid.
         stereo: the stereo pair, or None where absent or invalid.
         masks: the user's silhouettes ``masks/pose1`` … ``masks/pose6`` in order (8-bit,
             > 127 is the person), or None where the silhouettes do not come from ``masks/``.
@@ -93,6 +108,7 @@ class Subject:
     background: list[Path] = field(default_factory=list)
     poses: list[Path] = field(default_factory=list)
     truth: dict | None = None
+    facts: dict = field(default_factory=dict)
     stereo: StereoInfo | None = None
     masks: list[Path] | None = None
     method: str = "background"
@@ -226,6 +242,46 @@ def _validate_joints_world(value: Any, source: str) -> list[str]:
 
 
 # --------------------------------------------------------------------------------------------
+# subject.yaml
+
+
+def validate_facts(data: Any, source: str = "subject.yaml") -> list[str]:
+    """Problems of a parsed ``subject.yaml`` (empty when valid).
+
+    Valid: a mapping with any of ``height_m`` (metres, within :data:`HEIGHT_RANGE_M`),
+    ``weight_kg`` (within the range of an adult) and ``sex`` (``female`` or ``male``).
+    """
+    if not isinstance(data, dict):
+        return [f"{source}: expected a mapping of facts, got {type(data).__name__}"]
+    problems = []
+    ranges = {"height_m": (HEIGHT_RANGE_M, "m"), "weight_kg": (WEIGHT_RANGE_KG, "kg")}
+    for key, value in data.items():
+        if key in ranges:
+            (lo, hi), unit = ranges[key]
+            if not _is_number(value) or not lo <= value <= hi:
+                problems.append(
+                    f"{source}: {key} must be a number from {lo:g} to {hi:g} {unit}, got {value!r}"
+                )
+        elif key == "sex":
+            if value not in SEXES:
+                problems.append(f"{source}: sex must be 'female' or 'male', got {value!r}")
+        else:
+            problems.append(f"{source}: unknown key {key!r} (valid keys: {', '.join(FACT_KEYS)})")
+    return problems
+
+
+def _load_facts(path: Path, problems: list[str]) -> dict:
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        problems.append(f"{path}: invalid YAML: {str(exc).splitlines()[0]}")
+        return {}
+    found = validate_facts({} if data is None else data, str(path))
+    problems.extend(found)
+    return {} if found else {k: data[k] for k in FACT_KEYS if k in data}
+
+
+# --------------------------------------------------------------------------------------------
 # Subjects
 
 
@@ -294,8 +350,8 @@ def load_subject(folder: str | Path, method: str = "auto") -> Subject:
     Problems (the subject cannot be fitted): missing folder, missing or invalid
     ``camera.yaml``, fewer than :data:`MIN_BACKGROUND_FRAMES` background frames (not needed
     when the silhouettes come from ``masks/``), a missing posture image or mask, an image or
-    mask whose size differs from the camera's, an invalid ``truth.json``. An invalid optional
-    ``stereo/`` folder is only a warning (``stereo`` is None).
+    mask whose size differs from the camera's, an invalid ``truth.json`` or ``subject.yaml``.
+    An invalid optional ``stereo/`` folder is only a warning (``stereo`` is None).
 
     Args:
         folder: the subject folder.
@@ -348,6 +404,10 @@ def load_subject(folder: str | Path, method: str = "auto") -> Subject:
             truth_problems = validate_truth(truth, str(truth_path))
             problems.extend(truth_problems)
             subject.truth = None if truth_problems else truth
+
+    facts_path = folder / "subject.yaml"
+    if facts_path.is_file():
+        subject.facts = _load_facts(facts_path, problems)
 
     subject.stereo = _load_stereo(folder, subject.warnings)
     return subject

@@ -103,14 +103,16 @@ def template_digest(template: Template) -> str:
 
 def inputs_digest(subject: Subject) -> str:
     """SHA-256 of what the fit reads of a subject: ``camera.yaml``, the background frames,
-    the six posture images and the masks where the subject's silhouettes come from
-    ``masks/`` (names relative to the subject folder, and contents).
+    the six posture images, the masks where the subject's silhouettes come from ``masks/``,
+    and the optional ``subject.yaml`` (names relative to the subject folder, and contents).
 
     Raises:
         DataError: a file cannot be read.
     """
     files = [subject.folder / "camera.yaml", *subject.background, *subject.poses]
     files += subject.masks or []
+    if (subject.folder / "subject.yaml").is_file():
+        files.append(subject.folder / "subject.yaml")
     return files_digest(files, subject.folder)
 
 

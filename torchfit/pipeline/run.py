@@ -30,6 +30,7 @@ from torchfit.camera import stack_cameras
 from torchfit.config.loader import config_to_yaml
 from torchfit.config.schema import Config
 from torchfit.errors import ConfigError, DataError, OutputError, TorchfitError
+from torchfit.fit.prior import KnownFacts, PriorFit, load_prior
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.io.dataset import Subject, load_dataset
 from torchfit.io.export import write_json
@@ -71,7 +72,7 @@ def _fit(
     shadow = torch.stack([p.shadow[used] for p in prepared])
     cameras = stack_cameras([p.subject.camera for p in prepared])
     person = person_data(config, masks, shadow, cameras, model.dtype).to(model.device)
-    fit = SilhouetteFit(model, person, config.fit, (config.model.scale_min, config.model.scale_max))
+    fit = _problem(model, person, config, [p.subject.facts for p in prepared])
     images = torch.stack([p.images[used] for p in prepared])
     x, starts = start_params(fit, config, masks, images)
     if starts is not None:
@@ -80,6 +81,38 @@ def _fit(
                 log.info("%s: initial guess %s: %s", name, info.source, info.message)
     x, records = run_stages(fit, x, config, names, tb, stage_progress)
     return fit, x, starts, records
+
+
+def _problem(model: BodyModel, person, config: Config, facts: list[dict]) -> SilhouetteFit:
+    """The batch's problem: with the population prior and the known facts where the config
+    weighs the prior or a subject has ``subject.yaml`` facts."""
+    bounds = (config.model.scale_min, config.model.scale_max)
+    options = config.fit.prior
+    if options.weight == 0 and not any(facts):
+        return SilhouetteFit(model, person, config.fit, bounds)
+    prior = load_prior(options.name) if options.weight > 0 else None
+    known = [KnownFacts(**f) for f in facts]
+    return PriorFit(model, person, config.fit, bounds, prior, options, known)
+
+
+def facts_record(fit: SilhouetteFit, i: int) -> dict:
+    """params.json's record of the prior and the known facts of subject ``i``."""
+    if not isinstance(fit, PriorFit):
+        return {"prior": None, "known_facts": {}, "facts_used": {}}
+    facts = fit.facts[i]
+    used: dict = {}
+    if facts.height_m is not None:
+        used["height_m"] = {
+            "value": facts.height_m,
+            "tolerance_m": fit.prior_options.height_tolerance_m,
+        }
+    prior = None
+    if fit.prior is not None:
+        component = fit.prior_components[i]
+        prior = {"name": fit.prior.name, "weight": fit.prior_options.weight, "component": component}
+        if facts.sex is not None:
+            used["sex"] = f"prior component {component!r}"
+    return {"prior": prior, "known_facts": facts.to_dict(), "facts_used": used}
 
 
 def fit_batch(
@@ -156,6 +189,7 @@ def fit_batch(
             records[i],
             seconds + prep.seconds,
         )
+        document.update(facts_record(fit, i))
         write_json(folder / "params.json", document)
         write_json(folder / "measurements.json", {**measurements, "status": str(status)})
         write_fingerprint(folder, fingerprints[name])
