@@ -167,7 +167,7 @@ def test_hsl_keeps_cast_shadow_as_background_rgb_baseline_does_not(k: float) -> 
     results = {}
     for space in ("hsl", "rgb"):
         # brightness barely weighted (gamma = 0.05), as the paper allows; the colour test alone
-        cfg = SegmentationOptions(gamma=0.05, color_space=space, shadow_test=False)
+        cfg = SegmentationOptions(gamma=0.05, color_space=space, shadow_test=False, edge_width=0)
         model = fit_background(background, cfg)
         res = segment(image, model, cfg)
         raw = (res.distance[0, 0][shadow] <= cfg.threshold).float().mean().item()
