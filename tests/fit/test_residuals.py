@@ -153,3 +153,22 @@ def test_barrier_gradients():
 def test_float32_keeps_dtype(fn):
     d = torch.tensor([[1.0, 2.0]], dtype=torch.float32)
     assert fn(d, torch.tensor([[True, True]])).dtype == torch.float32
+
+
+def test_padded_row_sum_ignores_padding_and_memory_layout():
+    """The same terms give the same sums bit for bit: alone, zero-padded to a longer row (a
+    batch's longest), and as a strided view (the Jacobian sums a transposed tensor). Reference:
+    the row alone, contiguous, through the same function."""
+    from torchfit.fit.residuals import SUM_CHUNK, padded_row_sum
+
+    gen = torch.Generator().manual_seed(0)
+    n = 27 * SUM_CHUNK - 44  # not a whole number of chunks: padded inside the function
+    values = torch.randn(57, n, generator=gen, dtype=torch.float64) * 1e3
+    alone = padded_row_sum(values)
+    padded = torch.cat([values, torch.zeros(57, 44, dtype=torch.float64)], 1)  # whole chunks
+    strided = padded.T.contiguous().T  # the same numbers, last dimension not contiguous
+    assert not strided.is_contiguous()
+    assert torch.equal(padded_row_sum(padded), alone)
+    assert torch.equal(padded_row_sum(strided), alone)
+    # and a plain sum would not have been invariant here (otherwise this test proves nothing)
+    assert torch.allclose(padded.sum(-1), alone, rtol=0, atol=1e-9)

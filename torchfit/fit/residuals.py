@@ -40,6 +40,9 @@ def padded_row_sum(values: torch.Tensor) -> torch.Tensor:
     Returns:
         (...) sums.
     """
+    # contiguous, so that each chunk is summed by the same kernel whether or not it was padded
+    # here (a strided view, e.g. a transposed one, takes another reduction order)
+    values = values.contiguous()
     n = values.shape[-1]
     chunks = max(1, -(-n // SUM_CHUNK))
     pad = chunks * SUM_CHUNK - n
