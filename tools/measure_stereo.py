@@ -109,7 +109,9 @@ def _measure(config, subjects, out: Path) -> int:
             picture = draw_labelling(view.image, view.labelling, view.mask, marks)
             write_image(folder / f"overlay_{side}.png", picture)
         row.update(
-            status=result.status, failed_rule=result.failed_rule or "", message=result.message
+            status=result.status,
+            failed_rule=result.failed_rule or "",
+            message=result.message or "; ".join(result.notes),
         )
         if result.status == "ok":
             write_json(folder / "joints3d.json", {"joints_world": result.joints_world})

@@ -57,6 +57,7 @@ class StereoResult:
         ray_gap_m: joint name -> distance between the two viewing rays, metres.
         measurements: key -> metres (empty when failed).
         views: ``"left"``, ``"right"`` -> :class:`ViewResult` (those that were processed).
+        notes: what is worth knowing about an ok result (a view segmented a second time).
         pixels: ``"left"``, ``"right"`` -> joint name -> ``(2,)`` the pixels triangulated
             (after stereo matching, when on).
     """
@@ -68,6 +69,7 @@ class StereoResult:
     ray_gap_m: dict[str, float] = field(default_factory=dict)
     measurements: dict[str, float] = field(default_factory=dict)
     views: dict[str, ViewResult] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
     pixels: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
@@ -93,6 +95,25 @@ def segment_view(
     return image, result.masks[0, 0].cpu().numpy()
 
 
+def _label_view(
+    stereo: StereoInfo, side: str, segmentation: SegmentationOptions, parts: PartsOptions
+) -> tuple[ViewResult | None, tuple[str, str] | None]:
+    """Segment and label one view: ``(view, None)``, or ``(view or None, (rule, message))``."""
+    image, mask = segment_view(
+        getattr(stereo, f"{side}_image"), getattr(stereo, f"background_{side}"), segmentation
+    )
+    if mask is None:
+        return None, ("segmentation", "no person found")
+    why = implausible(torch.from_numpy(mask)[None, None], segmentation.plausibility)[0]
+    if why:
+        return None, ("segmentation", f"segmentation implausible: {why}")
+    labelling = decompose_cactus(mask, image, parts)
+    view = ViewResult(image, mask, labelling)
+    if not labelling.ok:
+        return view, (labelling.failed_rule, f"{labelling.failed_rule}: {labelling.message}")
+    return view, None
+
+
 def measure_stereo_pair(
     stereo: StereoInfo,
     parts: PartsOptions | None = None,
@@ -106,6 +127,9 @@ def measure_stereo_pair(
         segmentation: background subtraction options (for the synthetic rooms with floor
             shadows use ``gamma: 0.05``).
 
+    A view whose silhouette fails the rules is segmented once more with
+    ``segmentation.shadow_bridge`` (when the shadow test is on and the bridge is not).
+
     Returns:
         A :class:`StereoResult`; failures carry the rule and the view (a silhouette that
         cannot be a person, :func:`~torchfit.image.plausibility.implausible`, fails the rule
@@ -117,23 +141,29 @@ def measure_stereo_pair(
     parts = parts or PartsOptions()
     segmentation = segmentation or SegmentationOptions()
     out = StereoResult()
+    # a view whose silhouette breaks the body's rules is segmented once more with
+    # segmentation.shadow_bridge (shadow-like pixels with person above and below them in their
+    # column stay person: a white leg before a white wall is not cut off); the first failure
+    # is the one reported when both fail
+    attempts = [segmentation]
+    if segmentation.shadow_test and not segmentation.shadow_bridge:
+        attempts.append(dataclasses.replace(segmentation, shadow_bridge=True))
     for side in ("left", "right"):
-        image, mask = segment_view(
-            getattr(stereo, f"{side}_image"), getattr(stereo, f"background_{side}"), segmentation
-        )
-        if mask is None:
-            out.failed_rule, out.message = "segmentation", f"{side} view: no person found"
-            return out
-        why = implausible(torch.from_numpy(mask)[None, None], segmentation.plausibility)[0]
-        if why:
-            out.failed_rule = "segmentation"
-            out.message = f"{side} view: segmentation implausible: {why}"
-            return out
-        labelling = decompose_cactus(mask, image, parts)
-        out.views[side] = ViewResult(image, mask, labelling)
-        if not labelling.ok:
-            out.failed_rule = labelling.failed_rule
-            out.message = f"{side} view: {labelling.failed_rule}: {labelling.message}"
+        failure = None
+        for k, options in enumerate(attempts):
+            view, why = _label_view(stereo, side, options, parts)
+            if why is None:
+                out.views[side] = view
+                if k > 0:
+                    out.notes.append(f"{side} view: segmented with shadow_bridge")
+                break
+            if failure is None:
+                failure = (view, why)
+        else:
+            view, (out.failed_rule, message) = failure
+            if view is not None:
+                out.views[side] = view
+            out.message = f"{side} view: {message}"
             return out
     left, right = out.views["left"].labelling, out.views["right"].labelling
     if parts.stereo_match and parts.stereo_depth == "outline":
