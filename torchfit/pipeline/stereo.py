@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from torchfit.image.background import fit_background
+from torchfit.image.background import BackgroundModel, fit_background
 from torchfit.image.morphology import fill_holes
 from torchfit.image.plausibility import implausible
 from torchfit.image.segment import SegmentationOptions, segment
@@ -73,6 +73,27 @@ class StereoResult:
     pixels: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
+def _load_view(
+    image_path, background_paths, config: SegmentationOptions
+) -> tuple[np.ndarray, BackgroundModel]:
+    """One view's image, ``(H, W, 3)`` uint8 RGB, and the background model of its frames."""
+    image = read_image(image_path)
+    frames, _ = load_frames(background_paths, size=(image.shape[1], image.shape[0]))
+    return image, fit_background(frames, config)
+
+
+def _mask(image: np.ndarray, model: BackgroundModel, config: SegmentationOptions):
+    """``(H, W)`` bool silhouette with its holes left unfilled, or None when no person was
+    found. Holes stay open: a hole between the legs marks the crotch (decompose_cactus fills
+    the rest itself)."""
+    config = dataclasses.replace(config, fill_holes=False)
+    img = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255.0
+    result = segment(img, model, config)
+    if not bool(result.found[0]):
+        return None
+    return result.masks[0, 0].cpu().numpy()
+
+
 def segment_view(
     image_path, background_paths, config: SegmentationOptions
 ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -82,26 +103,18 @@ def segment_view(
         ``(image, mask)``: ``(H, W, 3)`` uint8 RGB and ``(H, W)`` bool with its holes left
         unfilled, or None when no person was found.
     """
-    image = read_image(image_path)
-    # Holes stay open: a hole between the legs marks the crotch (decompose_cactus fills the
-    # rest itself).
-    config = dataclasses.replace(config, fill_holes=False)
-    frames, _ = load_frames(background_paths, size=(image.shape[1], image.shape[0]))
-    model = fit_background(frames, config)
-    img = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255.0
-    result = segment(img, model, config)
-    if not bool(result.found[0]):
-        return image, None
-    return image, result.masks[0, 0].cpu().numpy()
+    image, model = _load_view(image_path, background_paths, config)
+    return image, _mask(image, model, config)
 
 
 def _label_view(
-    stereo: StereoInfo, side: str, segmentation: SegmentationOptions, parts: PartsOptions
+    image: np.ndarray,
+    model: BackgroundModel,
+    segmentation: SegmentationOptions,
+    parts: PartsOptions,
 ) -> tuple[ViewResult | None, tuple[str, str] | None]:
     """Segment and label one view: ``(view, None)``, or ``(view or None, (rule, message))``."""
-    image, mask = segment_view(
-        getattr(stereo, f"{side}_image"), getattr(stereo, f"background_{side}"), segmentation
-    )
+    mask = _mask(image, model, segmentation)
     if mask is None:
         return None, ("segmentation", "no person found")
     why = implausible(torch.from_numpy(mask)[None, None], segmentation.plausibility)[0]
@@ -149,9 +162,14 @@ def measure_stereo_pair(
     if segmentation.shadow_test and not segmentation.shadow_bridge:
         attempts.append(dataclasses.replace(segmentation, shadow_bridge=True))
     for side in ("left", "right"):
+        # the image and background model serve every attempt (the bridge does not change
+        # the background model)
+        image, model = _load_view(
+            getattr(stereo, f"{side}_image"), getattr(stereo, f"background_{side}"), segmentation
+        )
         failure = None
         for k, options in enumerate(attempts):
-            view, why = _label_view(stereo, side, options, parts)
+            view, why = _label_view(image, model, options, parts)
             if why is None:
                 out.views[side] = view
                 if k > 0:
