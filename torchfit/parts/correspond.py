@@ -29,7 +29,13 @@ from scipy.ndimage import map_coordinates
 from torchfit.camera import Camera, project_points
 from torchfit.parts.stereo import pixel_rays, triangulate_midpoint
 
-__all__ = ["smooth_mask", "epipolar_line", "match_point", "corresponding_joints"]
+__all__ = [
+    "smooth_mask",
+    "epipolar_lines",
+    "epipolar_line",
+    "match_point",
+    "corresponding_joints",
+]
 
 
 def smooth_mask(mask: np.ndarray, sigma: float = 1.5) -> np.ndarray:
@@ -37,28 +43,54 @@ def smooth_mask(mask: np.ndarray, sigma: float = 1.5) -> np.ndarray:
     return cv2.GaussianBlur(mask.astype(np.float32), (0, 0), sigma)
 
 
+def epipolar_lines(
+    points: np.ndarray, guesses: np.ndarray, camera_left: Camera, camera_right: Camera
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each left pixel, its right view's epipolar line near a guessed right pixel.
+
+    Args:
+        points: ``(N, 2)`` left pixels.
+        guesses: ``(N, 2)`` right pixels near their lines.
+
+    Returns:
+        ``(q_c, e, depth)``: ``(N, 2)`` the feet of the guesses on the lines, ``(N, 2)`` the
+        lines' unit directions (pointing towards smaller depths, i.e. larger disparity), and
+        ``(N,)`` the depth along the left ray that the guesses triangulate to (3 m where they
+        do not).
+    """
+    pl = torch.as_tensor(points, dtype=torch.float64)[None]
+    pr = torch.as_tensor(guesses, dtype=torch.float64)[None]
+    x0, _ = triangulate_midpoint(pl, camera_left, pr, camera_right)
+    origin, direction = pixel_rays(pl, camera_left)
+    depth = torch.linalg.vector_norm(x0 - origin, dim=-1)[0]
+    depth = torch.where(torch.isfinite(depth) & (depth > 0), depth, torch.full_like(depth, 3.0))
+    far = origin[0] + direction[0] * (depth * 1.1)[:, None]
+    near = origin[0] + direction[0] * (depth / 1.1)[:, None]
+    q = project_points(torch.stack([far, near], 1).reshape(1, -1, 3), camera_right)[0]
+    q = q.reshape(-1, 2, 2).numpy()
+    e = q[:, 1] - q[:, 0]
+    e = e / np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-12)
+    q_c = q[:, 0] + ((np.asarray(guesses) - q[:, 0]) * e).sum(1, keepdims=True) * e
+    return q_c, e, depth.numpy()
+
+
 def epipolar_line(
     p: np.ndarray, q0: np.ndarray, camera_left: Camera, camera_right: Camera
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The right view's epipolar line of left pixel ``p``, near ``q0``.
+    """The right view's epipolar line of left pixel ``p``, near ``q0``
+    (:func:`epipolar_lines` for one pixel).
 
     Returns:
         ``(q_c, e)``: ``(2,)`` the foot of ``q0`` on the line and ``(2,)`` its unit direction
         (pointing towards smaller depths, i.e. larger disparity).
     """
-    pl = torch.tensor(p, dtype=torch.float64)[None, None]
-    pr = torch.tensor(q0, dtype=torch.float64)[None, None]
-    x0, _ = triangulate_midpoint(pl, camera_left, pr, camera_right)
-    origin, direction = pixel_rays(pl, camera_left)
-    depth = torch.linalg.vector_norm(x0 - origin, dim=-1)
-    if not bool(torch.isfinite(depth).all()) or float(depth) <= 0:
-        depth = torch.ones_like(depth) * 3.0
-    pts = origin + direction * torch.stack([depth * 1.1, depth / 1.1], dim=-1)[..., None]
-    q = project_points(pts.reshape(1, 2, 3), camera_right)[0].numpy()
-    e = q[1] - q[0]
-    e = e / max(float(np.linalg.norm(e)), 1e-12)
-    q_c = q[0] + float((np.asarray(q0) - q[0]) @ e) * e
-    return q_c, e
+    q_c, e, _ = epipolar_lines(
+        np.asarray(p, dtype=np.float64)[None],
+        np.asarray(q0, dtype=np.float64)[None],
+        camera_left,
+        camera_right,
+    )
+    return q_c[0], e[0]
 
 
 def match_point(

@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 import torch
 
-from torchfit.camera import Camera, project_points
-from torchfit.parts.correspond import match_point, smooth_mask
+from torchfit.camera import Camera
+from torchfit.parts.correspond import epipolar_lines, match_point, smooth_mask
 from torchfit.parts.stereo import pixel_rays, triangulate_midpoint
 
 __all__ = [
@@ -64,29 +64,6 @@ def _outline(mask: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
     tangent = np.roll(c, -k, axis=0) - np.roll(c, k, axis=0)
     tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
     return c[::step], tangent[::step]
-
-
-def _epipolar_directions(
-    points: np.ndarray, guess: np.ndarray, camera_left: Camera, camera_right: Camera
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each left point: its right epipolar line near ``points + guess`` and that guess's
-    depth. Returns ``(q_c (N, 2), e (N, 2), depth (N,))`` (see
-    :func:`~torchfit.parts.correspond.epipolar_line`, of which this is the batched form)."""
-    pl = torch.from_numpy(points)[None]
-    pr = torch.from_numpy(points + guess[None])[None]
-    x0, _ = triangulate_midpoint(pl, camera_left, pr, camera_right)
-    origin, direction = pixel_rays(pl, camera_left)
-    depth = torch.linalg.vector_norm(x0 - origin, dim=-1)[0]
-    depth = torch.where(torch.isfinite(depth) & (depth > 0), depth, torch.full_like(depth, 3.0))
-    near = origin[0] + direction[0] * (depth / 1.1)[:, None]
-    far = origin[0] + direction[0] * (depth * 1.1)[:, None]
-    q = project_points(torch.stack([far, near], 1).reshape(1, -1, 3), camera_right)[0]
-    q = q.reshape(-1, 2, 2).numpy()
-    e = q[:, 1] - q[:, 0]
-    e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-12)
-    q0 = points + guess[None]
-    q_c = q[:, 0] + ((q0 - q[:, 0]) * e).sum(1, keepdims=True) * e
-    return q_c, e, depth.numpy()
 
 
 def _camera_depths(points3d: torch.Tensor, camera: Camera) -> np.ndarray:
@@ -128,7 +105,9 @@ def outline_depths(
     points, tangent = _outline(mask_left, step_px)
     if len(points) == 0:
         return OutlineDepth(points, np.zeros(0), np.zeros(0))
-    q_c, e, _ = _epipolar_directions(points, np.asarray(guess, float), camera_left, camera_right)
+    q_c, e, _ = epipolar_lines(
+        points, points + np.asarray(guess, float)[None], camera_left, camera_right
+    )
     sine2 = (tangent[:, 0] * e[:, 1] - tangent[:, 1] * e[:, 0]) ** 2
     keep = sine2 >= min_sine**2
     sl, sr = smooth_mask(mask_left), smooth_mask(mask_right)
