@@ -23,7 +23,7 @@ import io
 import json
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +31,7 @@ import torch
 
 from torchfit.body.bvh import model_motion
 from torchfit.body.model import BodyModel
+from torchfit.body.postures import facing_yaw
 from torchfit.camera import Camera, camera_centre, project_points, stack_cameras
 from torchfit.errors import DataError
 from torchfit.fit.person import person_data_from_masks
@@ -171,7 +172,7 @@ def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
     """First-frame rows: yaw hypotheses per sequence, the best contour kept."""
     b = scales.shape[0]
     centre = camera_centre(cameras.R, cameras.t).to(model.dtype)
-    yaw0 = torch.atan2(centre[:, 1], centre[:, 0])
+    yaw0 = facing_yaw(centre)
     rows = []
     for i in range(b):
         ys, xs = torch.nonzero(mask[i], as_tuple=True)
@@ -192,27 +193,22 @@ def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
     x0 = torch.stack(rows)
     n = len(_TURNS)
     sc = scales.repeat_interleave(n, 0)
-    cams = cameras[torch.arange(b).repeat_interleave(n)]
     # the root height: the model's lowest point on the floor
     with torch.no_grad():
         t, r, q = PoseLayout.split(x0)
         low = model(sc, q, t, r).vertices[..., 2].min(1).values
     x0[:, 2] -= low
+    # the distance maps once per sequence, shared by its hypotheses
     person = person_data_from_masks(
-        mask.repeat_interleave(n, 0)[:, None],
-        cams,
-        stride=options.contour_stride,
-        dtype=model.dtype,
-    )
-    opts = TrackOptions(
-        **{
-            **options.__dict__,
-            "iterations": 3 * options.iterations,
-            "rounds": 3,
-            "temporal_joints": 0.5,
-            "temporal_rotation": 0.0,
-            "temporal_translation": 0.0,
-        }
+        mask[:, None], cameras, stride=options.contour_stride, dtype=model.dtype
+    ).subset(torch.arange(b).repeat_interleave(n))
+    opts = replace(
+        options,
+        iterations=3 * options.iterations,
+        rounds=3,
+        temporal_joints=0.5,
+        temporal_rotation=0.0,
+        temporal_translation=0.0,
     )
     res = solve_frame(model, sc, person, layout, x0, x0, opts)
     best = res.contour_rms.reshape(b, n).argmin(1)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -89,6 +89,14 @@ def track(
     it = iter(masks)
     if progress is not None:
         it = progress(it)
+    # a bad frame is solved again from the last good one, held closer to it, for longer
+    recovery = replace(
+        options,
+        temporal_joints=0.1,
+        temporal_rotation=0.1,
+        temporal_translation=1.0,
+        iterations=2 * options.iterations,
+    )
     for f, mask in enumerate(it):
         t0 = time.perf_counter()
         person = person_data_from_masks(
@@ -104,9 +112,7 @@ def track(
         bad = [i for i in range(b) if float(res.contour_rms[i]) > limit[i]]
         if bad:
             idx = torch.tensor(bad)
-            sub = person_data_from_masks(
-                mask[idx][:, None], cameras[idx], stride=options.contour_stride, dtype=model.dtype
-            )
+            sub = person.subset(idx)
             again = solve_frame(
                 model,
                 scales[idx],
@@ -114,15 +120,7 @@ def track(
                 layout,
                 good[idx],
                 good[idx],
-                TrackOptions(
-                    **{
-                        **options.__dict__,
-                        "temporal_joints": 0.1,
-                        "temporal_rotation": 0.1,
-                        "temporal_translation": 1.0,
-                        "iterations": 2 * options.iterations,
-                    }
-                ),
+                recovery,
                 sampler,
             )
             for k, i in enumerate(bad):
