@@ -64,13 +64,10 @@ def _progress(arg: object) -> tqdm:
     return tqdm(arg, desc="subjects", unit="subject")
 
 
-def _subject_folders(root: str | Path, names: list[str] | None) -> dict[str, Path]:
-    return {s.name: s.folder for s in load_dataset(root, names)}
-
-
-def _facts_setting(root: str | Path, names) -> dict[str, str]:
-    """A header line saying which subjects had known facts (``subject.yaml``), if any."""
-    subjects = [s for s in load_dataset(root, list(names)) if s.facts]
+def _facts_setting(subjects: list, names) -> dict[str, str]:
+    """A header line saying which of the subjects ``names`` had known facts
+    (``subject.yaml``), if any."""
+    subjects = [s for s in subjects if s.name in names and s.facts]
     if not subjects:
         return {"known facts (subject.yaml)": "none"}
     keys = sorted({k for s in subjects for k in s.facts})
@@ -87,24 +84,26 @@ class _Run(NamedTuple):
     settings: dict[str, str]
 
 
-def _truths(config) -> tuple[dict[str, dict[str, float]], list[str]]:
+def _truths(config) -> tuple[dict[str, dict[str, float]], list[str], list]:
+    """The subjects' truths, notes on those without, and the subjects as loaded."""
     if not config.data.root:
         raise ConfigError("data.root is not set: pass --data DIR or set data.root in the config")
-    truths, notes = collect_truths(_subject_folders(config.data.root, config.data.subjects))
+    subjects = load_dataset(config.data.root, config.data.subjects)
+    truths, notes = collect_truths({s.name: s.folder for s in subjects})
     if not truths:
         raise DataError(f"no subject with a valid truth.json in {config.data.root}")
-    return truths, notes
+    return truths, notes, subjects
 
 
 def _fit(args: argparse.Namespace) -> _Run:
     config = replace_keys(config_from_args(args), {"run.resume": args.resume})
-    truths, notes = _truths(config)
+    truths, notes, subjects = _truths(config)
     config = replace_keys(config, {"data.subjects": tuple(truths)})
     run_dir = run_folder(config)
     from torchfit.pipeline import run  # imports the body model stack
 
     results = run(config, run_dir, progress=_progress)
-    settings = {**_settings(run_dir), **_facts_setting(config.data.root, truths)}
+    settings = {**_settings(run_dir), **_facts_setting(subjects, truths)}
     return _Run(results, truths, Path(config.data.root), run_dir, notes, settings)
 
 
@@ -115,7 +114,7 @@ def _template_baseline(args: argparse.Namespace) -> _Run:
     from torchfit.body.model import BodyModel
 
     config = config_from_args(args)
-    truths, notes = _truths(config)
+    truths, notes, _ = _truths(config)
     dtype = torch.float64 if config.run.dtype == "float64" else torch.float32
     model = BodyModel(config.model.template, device=config.run.device, dtype=dtype)
     scales = torch.ones(1, model.num_segments, 3, dtype=dtype, device=model.device)
@@ -141,13 +140,14 @@ def _from_results(args: argparse.Namespace) -> _Run:
             raise ConfigError(f"{saved}: cannot read data.root ({exc}); pass --data DIR") from exc
         if not root:
             raise ConfigError(f"{saved}: data.root is not set; pass --data DIR")
-    folders = _subject_folders(root, None)
+    subjects = load_dataset(root)
+    folders = {s.name: s.folder for s in subjects}
     wanted = {r.name: folders[r.name] for r in results if r.name in folders}
     truths, notes = collect_truths(wanted)
     notes += [
         f"{r.name}: skipped, no subject folder in {root}" for r in results if r.name not in wanted
     ]
-    settings = {**_settings(run_dir), **_facts_setting(root, truths)}
+    settings = {**_settings(run_dir), **_facts_setting(subjects, truths)}
     return _Run(results, truths, Path(root), run_dir, notes, settings)
 
 
