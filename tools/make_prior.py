@@ -39,6 +39,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from make_proportions import read_ansur  # noqa: E402
 
+from torchfit.fit.prior import SEXES  # noqa: E402  (the prior's components)
+
 ROOT = Path(__file__).resolve().parents[1]
 
 #: template scale entry -> (ANSUR II expression, columns added with their signs)
@@ -79,7 +81,6 @@ ENTRIES: dict[str, tuple[str, dict[str, int]]] = {
     "forearm:z": ("radialestylionlength", {"radialestylionlength": 1}),
     "hand:z": ("handlength", {"handlength": 1}),
 }
-SEXES = ("female", "male")
 #: calibrated entry -> the measurement (design.md section 5) whose proportion sets it
 CALIBRATED: dict[str, str] = {
     "thigh:z": "thigh_m",
