@@ -34,7 +34,7 @@ import torch.nn.functional as F
 
 from torchfit.errors import ConfigError, SegmentationError, ShapeError
 
-__all__ = ["ChromaKeyOptions", "estimate_key", "keyness", "chroma_key", "despill"]
+__all__ = ["ChromaKeyOptions", "estimate_key", "key_colour", "keyness", "chroma_key", "despill"]
 
 _EPS = 1e-6
 
@@ -164,10 +164,34 @@ def keyness(
     return q, q_rel, brightness
 
 
+def key_colour(
+    options: ChromaKeyOptions,
+    background: torch.Tensor | None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """The key colour, (3,) RGB in [0, 1]: ``options.key`` when given, else estimated from
+    the background frames (:func:`estimate_key`).
+
+    Raises:
+        ConfigError: no key colour and no background frames;
+        SegmentationError: no screen in the background frames.
+    """
+    if options.key is not None:
+        return torch.tensor(options.key, dtype=dtype, device=device) / 255.0
+    if background is not None:
+        return estimate_key(background)
+    raise ConfigError(
+        "segmentation.chroma_key.key is not set and there are no background frames to "
+        "estimate the key colour from"
+    )
+
+
 def chroma_key(
     images: torch.Tensor,
     options: ChromaKeyOptions,
     background: torch.Tensor | None = None,
+    key: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The raw person mask of a chroma-keyed batch (clean it with
     :func:`~torchfit.image.segment.clean_mask`).
@@ -176,6 +200,7 @@ def chroma_key(
         images: (B, 3, H, W) RGB in [0, 1].
         options: the key colour (or None: estimated from ``background``) and tolerances.
         background: optional (N, 3, H, W) frames of the empty screen.
+        key: optional (3,) key colour already found (:func:`key_colour`).
 
     Returns:
         (B, 1, H, W) bool, True on the person.
@@ -186,15 +211,8 @@ def chroma_key(
     """
     options.check()
     _check("images", images)
-    if options.key is not None:
-        key = torch.tensor(options.key, dtype=images.dtype, device=images.device) / 255.0
-    elif background is not None:
-        key = estimate_key(background)
-    else:
-        raise ConfigError(
-            "segmentation.chroma_key.key is not set and there are no background frames to "
-            "estimate the key colour from"
-        )
+    if key is None:
+        key = key_colour(options, background, images.dtype, images.device)
     key = key.clamp_min(0) ** options.gamma
     images = images.clamp_min(0) ** options.gamma
     if background is not None:

@@ -18,7 +18,7 @@ from torchfit.config.schema import Config
 from torchfit.errors import DataError, SegmentationError
 from torchfit.fit.person import PersonData, person_data_from_masks
 from torchfit.image.background import fit_background
-from torchfit.image.chroma import ChromaKeyOptions, chroma_key, despill, estimate_key
+from torchfit.image.chroma import ChromaKeyOptions, chroma_key, despill, key_colour
 from torchfit.image.plausibility import implausible
 from torchfit.image.segment import SegmentationOptions, clean_mask, segment
 from torchfit.io.dataset import Subject
@@ -135,7 +135,8 @@ def _chroma_key(
             f"{subject.folder / 'background'}: chroma key needs background frames to estimate "
             "the key colour, or segmentation.chroma_key.key"
         )
-    raw = chroma_key(images, options, background)
+    key = key_colour(options, background, images.dtype, images.device)
+    raw = chroma_key(images, options, background, key)
     masks = clean_mask(
         raw,
         segmentation.open_kernel,
@@ -145,11 +146,6 @@ def _chroma_key(
         segmentation.max_hole_area,
     )
     if options.despill:
-        key = (
-            torch.tensor(options.key, dtype=images.dtype) / 255.0
-            if options.key is not None
-            else estimate_key(background)
-        )
         images = despill(images, masks, key, options.spill_px)
     return images, masks[:, 0]
 
