@@ -5,11 +5,11 @@
 (``--out`` defaults to ``torchfit/pipeline/proportions.csv``.)
 
 Each row is a fitted measurement divided by the height, with the ANSUR II columns that stand
-for it (millimetres, divided by ``stature``), and its 0.5th and 99.5th percentiles over all
-6068 soldiers (men and women together). ANSUR II measures landmarks on the skin (acromion,
-radiale, stylion, tibiale), the model joint centres: the judge adds a margin on both sides
-(``torchfit.pipeline.checks``). ``tests/pipeline/test_checks.py`` re-derives the table where
-the data are present.
+for it (millimetres, divided by ``stature``), its 0.5th, 1st, 99th and 99.5th percentiles and
+its geometric mean over all 6068 soldiers (men and women together). ANSUR II measures
+landmarks on the skin (acromion, radiale, stylion, tibiale), the model joint centres: how the
+judge reads each row is its ``convention`` (``torchfit.pipeline.checks``).
+``tests/pipeline/test_checks.py`` re-derives the table where the data are present.
 """
 
 from __future__ import annotations
@@ -23,19 +23,24 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: measurement key -> (ANSUR II expression, columns added with their signs)
-RATIOS: dict[str, tuple[str, dict[str, int]]] = {
-    "arm_span_m": ("span", {"span": 1}),
-    "upper_arm_m": ("acromionradialelength", {"acromionradialelength": 1}),
-    "forearm_m": ("radialestylionlength", {"radialestylionlength": 1}),
-    "lower_leg_m": ("tibialheight", {"tibialheight": 1}),
+#: measurement key -> (ANSUR II expression, columns added with their signs, convention):
+#: ``same`` where ANSUR II measures what the model does (fingertip to fingertip), ``template``
+#: where it measures skin landmarks and the model joint centres (the judge then reads the
+#: ratio relative to its geometric mean and puts the template there, as the prior does).
+RATIOS: dict[str, tuple[str, dict[str, int], str]] = {
+    "arm_span_m": ("span", {"span": 1}, "same"),
+    "upper_arm_m": ("acromionradialelength", {"acromionradialelength": 1}, "template"),
+    "forearm_m": ("radialestylionlength", {"radialestylionlength": 1}, "template"),
+    "lower_leg_m": ("tibialheight", {"tibialheight": 1}, "template"),
     "thigh_m": (
         "trochanterionheight - tibialheight",
         {"trochanterionheight": 1, "tibialheight": -1},
+        "template",
     ),
-    "shoulder_width_m": ("biacromialbreadth", {"biacromialbreadth": 1}),
+    "shoulder_width_m": ("biacromialbreadth", {"biacromialbreadth": 1}, "template"),
 }
-PERCENTILES = (0.5, 99.5)
+#: The hard limits (0.5th, 99.5th) and the population range (1st, 99th) of each ratio.
+PERCENTILES = (0.5, 1.0, 99.0, 99.5)
 
 
 def read_ansur(folder: Path, wanted: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
@@ -45,7 +50,7 @@ def read_ansur(folder: Path, wanted: tuple[str, ...] | None = None) -> dict[str,
     result also holds ``sex``, ``"male"`` or ``"female"`` per row.
     """
     if wanted is None:
-        wanted = ("stature", *sorted({c for _, cols in RATIOS.values() for c in cols}))
+        wanted = ("stature", *sorted({c for _, cols, _ in RATIOS.values() for c in cols}))
     columns: dict[str, list] = {}
     for name, encoding in (("MALE", "latin-1"), ("FEMALE", "utf-8")):
         with (folder / f"ANSUR_II_{name}_Public.csv").open(encoding=encoding) as f:
@@ -57,18 +62,23 @@ def read_ansur(folder: Path, wanted: tuple[str, ...] | None = None) -> dict[str,
 
 
 def derive(folder: Path) -> list[dict[str, str]]:
-    """The table rows: measurement, ANSUR expression, percentiles of the ratio to stature."""
+    """The table rows: measurement, ANSUR expression, convention, percentiles and geometric
+    mean of the ratio to stature."""
     data = read_ansur(folder)
     rows = []
-    for key, (expression, cols) in RATIOS.items():
+    for key, (expression, cols, convention) in RATIOS.items():
         ratio = sum(sign * data[c] for c, sign in cols.items()) / data["stature"]
-        lo, hi = np.percentile(ratio, PERCENTILES)
+        p0_5, p1, p99, p99_5 = np.percentile(ratio, PERCENTILES)
         rows.append(
             {
                 "measurement": key,
                 "ansur": f"({expression}) / stature",
-                "p0_5": f"{lo:.4f}",
-                "p99_5": f"{hi:.4f}",
+                "convention": convention,
+                "p0_5": f"{p0_5:.4f}",
+                "p1": f"{p1:.4f}",
+                "gmean": f"{np.exp(np.log(ratio).mean()):.4f}",
+                "p99": f"{p99:.4f}",
+                "p99_5": f"{p99_5:.4f}",
                 "n": str(ratio.size),
             }
         )

@@ -8,9 +8,12 @@ import pytest
 
 from torchfit.pipeline.checks import (
     PROPORTIONS_CSV,
+    Proportion,
     bound_flags,
     load_proportions,
+    population_ranges,
     proportion_flags,
+    proportion_outliers,
 )
 from torchfit.pipeline.judge import judge
 from torchfit.pipeline.stages import StageRecord
@@ -47,8 +50,33 @@ def test_the_table_holds_every_ratio_it_is_read_for():
         "thigh_m",
         "shoulder_width_m",
     }
-    lo, hi = table["arm_span_m"]
-    assert 0.9 < lo < 1.0 < hi < 1.15
+    for row in table.values():
+        assert row.p0_5 < row.p1 < row.gmean < row.p99 < row.p99_5
+    arm = table["arm_span_m"]
+    assert arm.convention == "same" and 0.9 < arm.p1 < 1.0 < arm.p99 < 1.15
+    assert {r.convention for k, r in table.items() if k != "arm_span_m"} == {"template"}
+
+
+def test_population_ranges_put_the_template_at_the_mean_where_definitions_differ():
+    table = {
+        "arm_span_m": Proportion("same", 0.95, 0.96, 1.03, 1.10, 1.11),
+        "thigh_m": Proportion("template", 0.21, 0.22, 0.25, 0.28, 0.29),
+    }
+    ranges = population_ranges({"arm_span_m": 1.01, "thigh_m": 0.24}, table)
+    assert ranges["arm_span_m"] == (0.96, 1.10)  # read as it is
+    lo, hi = ranges["thigh_m"]
+    assert lo == pytest.approx(0.22 * 0.24 / 0.25) and hi == pytest.approx(0.28 * 0.24 / 0.25)
+
+
+def test_outliers_name_the_nearer_end_of_the_range():
+    ranges = {"thigh_m": (0.21, 0.27), "forearm_m": (0.12, 0.16)}
+    body = {"height_m": 2.0, "thigh_m": 0.56, "forearm_m": 0.23, "upper_arm_m": 1.0}
+    out = proportion_outliers(body, ranges)
+    assert [(o.key, o.bound) for o in out] == [("thigh_m", 0.27), ("forearm_m", 0.12)]
+    assert out[0].ratio == pytest.approx(0.28)
+    assert out[0].describe().startswith("thigh / height 0.280 above the 99th percentile 0.270")
+    assert out[1].describe().startswith("forearm / height 0.115 below the 1st percentile 0.120")
+    assert proportion_outliers({**body, "thigh_m": 0.5, "forearm_m": 0.3}, ranges) == []
 
 
 def test_committed_table_matches_the_derivation(shared_data):
@@ -74,6 +102,11 @@ def test_flags_make_a_poor_fit_with_their_message():
     assert message == "pose4 down-weighted: contour rms 14.2 px vs median 2.1"
     assert records[-1].to_dict()["flags"] == [message]
     assert "flags" not in records[0].to_dict()
+    # a note (an unusual proportion the images show) does not make a poor fit
+    records[-1].flags = []
+    records[-1].notes = ["thigh / height 0.290 above ...; (the images show it)"]
+    assert judge(records, GOOD, 15.0) == (SubjectStatus.OK, f"done; {records[-1].notes[0]}")
+    assert records[-1].to_dict()["notes"] == records[-1].notes
 
 
 @pytest.mark.parametrize("key", ["upper_arm_m", "forearm_m", "lower_leg_m", "thigh_m"])

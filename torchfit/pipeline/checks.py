@@ -2,22 +2,40 @@
 ANSUR II) and scales that ended on their upper bound.
 
 The proportion table ``proportions.csv`` beside this module is derived by
-``tools/make_proportions.py``: per measurement, the 0.5th and 99.5th percentiles of its ratio
-to the height among the 6068 soldiers of ANSUR II. ANSUR II measures skin landmarks, the model
-joint centres (a joint-centre upper arm is about 15 % shorter than acromion to radiale, a
-joint-centre lower leg about 8 % longer than the tibial height), so a fit is implausible only
-outside the range widened by :data:`MARGINS`; arm span, fingertip to fingertip in both, gets a
-narrow margin.
+``tools/make_proportions.py``: per measurement, percentiles and the geometric mean of its
+ratio to the height among the 6068 soldiers of ANSUR II. Two checks read it:
+
+- **Hard limits** (:func:`proportion_flags`): outside the 0.5th–99.5th percentiles widened by
+  :data:`MARGINS`, no body is like that whatever the images say. ANSUR II measures skin
+  landmarks, the model joint centres (a joint-centre upper arm is about 15 % shorter than
+  acromion to radiale, a joint-centre lower leg about 8 % longer than the tibial height), hence
+  the margins; arm span, fingertip to fingertip in both, gets a narrow one.
+- **The population range** (:func:`population_ranges`, :func:`proportion_outliers`): the 1st–99th
+  percentiles, in the model's own definitions. A ``same`` row is read as it is; a ``template``
+  row relative to its geometric mean, with the template's own ratio as the population's mean
+  (the convention of the prior, ``torchfit.fit.prior``). A fit outside it stands only where
+  the images clearly show it (:mod:`torchfit.fit.evidence`, ``fit.proportion_evidence``).
 """
 
 from __future__ import annotations
 
 import csv
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-__all__ = ["PROPORTIONS_CSV", "MARGINS", "load_proportions", "proportion_flags", "bound_flags"]
+__all__ = [
+    "PROPORTIONS_CSV",
+    "MARGINS",
+    "Proportion",
+    "Outlier",
+    "load_proportions",
+    "proportion_flags",
+    "population_ranges",
+    "proportion_outliers",
+    "bound_flags",
+]
 
 #: The committed table (``tools/make_proportions.py``).
 PROPORTIONS_CSV = Path(__file__).with_name("proportions.csv")
@@ -33,23 +51,97 @@ MARGINS: dict[str, float] = {
 }
 
 
+@dataclass(frozen=True)
+class Proportion:
+    """One row of the proportion table: a measurement's ratio to the height in ANSUR II."""
+
+    convention: str
+    p0_5: float
+    p1: float
+    gmean: float
+    p99: float
+    p99_5: float
+
+
+@dataclass(frozen=True)
+class Outlier:
+    """A fitted ratio outside the population range: ``bound`` is the nearer end of it."""
+
+    key: str
+    ratio: float
+    bound: float
+
+    def describe(self) -> str:
+        """E.g. ``"thigh / height 0.290 above the 99th percentile 0.268 (...)"``."""
+        side = "above the 99th" if self.ratio > self.bound else "below the 1st"
+        return (
+            f"{self.key[:-2]} / height {self.ratio:.3f} {side} percentile {self.bound:.3f} "
+            "(ANSUR II, model definitions)"
+        )
+
+
 @lru_cache(maxsize=4)
-def load_proportions(path: Path = PROPORTIONS_CSV) -> dict[str, tuple[float, float]]:
-    """measurement key -> (0.5th, 99.5th percentile) of its ratio to the height."""
+def load_proportions(path: Path = PROPORTIONS_CSV) -> dict[str, Proportion]:
+    """measurement key -> its :class:`Proportion` row."""
     with Path(path).open(newline="") as f:
-        return {r["measurement"]: (float(r["p0_5"]), float(r["p99_5"])) for r in csv.DictReader(f)}
+        return {
+            r["measurement"]: Proportion(
+                r["convention"],
+                *(float(r[c]) for c in ("p0_5", "p1", "gmean", "p99", "p99_5")),
+            )
+            for r in csv.DictReader(f)
+        }
+
+
+def population_ranges(
+    template_ratios: Mapping[str, float], table: Mapping[str, Proportion] | None = None
+) -> dict[str, tuple[float, float]]:
+    """measurement key -> the 1st–99th percentile range of its ratio to the height, in the
+    model's definitions (see the module docstring).
+
+    Args:
+        template_ratios: key -> the template's own ratio to its height (unit scales).
+        table: the proportion table (default: :func:`load_proportions`).
+    """
+    table = load_proportions() if table is None else table
+    out = {}
+    for key, row in table.items():
+        if row.convention == "same":
+            out[key] = (row.p1, row.p99)
+        elif key in template_ratios:
+            at = template_ratios[key] / row.gmean
+            out[key] = (row.p1 * at, row.p99 * at)
+    return out
+
+
+def proportion_outliers(
+    measurements: Mapping[str, float], ranges: Mapping[str, tuple[float, float]]
+) -> list[Outlier]:
+    """The measurements whose ratio to ``height_m`` is outside ``ranges``
+    (:func:`population_ranges`)."""
+    height = measurements.get("height_m")
+    if not height or height <= 0:
+        return []
+    out = []
+    for key, (lo, hi) in ranges.items():
+        if key in measurements:
+            ratio = measurements[key] / height
+            if not lo <= ratio <= hi:
+                out.append(Outlier(key, ratio, lo if ratio < lo else hi))
+    return out
 
 
 def proportion_flags(
     measurements: Mapping[str, float],
-    table: Mapping[str, tuple[float, float]] | None = None,
+    table: Mapping[str, Proportion] | None = None,
     margins: Mapping[str, float] = MARGINS,
 ) -> list[str]:
     """Messages for the measurements whose ratio to ``height_m`` is far from human.
 
     Args:
         measurements: measurement key -> metres (``height_m`` among them).
-        table: key -> (low, high) ratio range (default: :func:`load_proportions`).
+        table: the proportion table (default: :func:`load_proportions`); the hard limits
+            are its 0.5th and 99.5th percentiles.
         margins: key -> relative widening of the range on both sides.
 
     Returns:
@@ -61,11 +153,11 @@ def proportion_flags(
     if not height or height <= 0:
         return []
     flags = []
-    for key, (lo, hi) in table.items():
+    for key, row in table.items():
         if key not in measurements:
             continue
         m = margins.get(key, 0.0)
-        low, high = lo * (1 - m), hi * (1 + m)
+        low, high = row.p0_5 * (1 - m), row.p99_5 * (1 + m)
         ratio = measurements[key] / height
         if not low <= ratio <= high:
             flags.append(
