@@ -12,8 +12,9 @@ template silhouette projected with the camera (scaled to ``--height-m``, or to t
 silhouette's height) (torchfit.capture.offline). A held posture's image is the per-pixel
 median of up to ``--hold-frames`` frames around the chosen one (contiguous, inside its still
 stretch, each silhouette overlapping the chosen frame's with an intersection over union of at
-least ``--hold-iou``): the sensor noise of one frame moves the fit by about a percent, the
-median of several frames much less. ``--hold-frames 1`` writes the chosen frame itself.
+least ``--hold-iou``), which removes most of one frame's sensor noise; ``--hold-frames 1``
+(the default) writes the chosen frame itself. On the development subjects the median did not
+bring the fit closer to the original images (benchmarks/RESULTS.md, Calibration and capture).
 
 Writes ``SUBJECT_DIR/background/bg01.png`` …, ``poses/pose1.png`` … ``pose6.png``, a copy of
 ``camera.yaml`` and ``capture.json`` (the background frames, the chosen frame, the frames

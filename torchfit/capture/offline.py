@@ -19,12 +19,11 @@ six postures of design.md section 4 in order, holding each still for about a sec
    silhouettes; each posture takes the best frame of one still stretch, the stretches in the
    postures' order (a dynamic programme over the stretches maximises the total score), and
    a posture whose best score is below ``min_score`` is not found.
-6. **Held frames:** a held posture's frames differ by sensor noise alone, and the fit is
-   sensitive to one frame's noise. With ``hold_frames`` > 1 the posture image is the
-   per-pixel median of up to ``hold_frames`` frames around the chosen one
-   (:func:`held_frames`: contiguous in time, inside its still stretch, each silhouette's
-   intersection over union with the chosen frame's at least ``hold_iou``); 1 keeps the
-   chosen frame alone. The background frames need no such step: the segmentation's
+6. **Held frames:** a held posture's frames differ by sensor noise alone. With
+   ``hold_frames`` > 1 the posture image is the per-pixel median of up to ``hold_frames``
+   frames around the chosen one (:func:`held_frames`: contiguous in time, inside its still
+   stretch, each silhouette's intersection over union with the chosen frame's at least
+   ``hold_iou``); 1 keeps the chosen frame alone. The background frames need no such step: the segmentation's
    background model is fitted to all of them.
 """
 
