@@ -23,8 +23,8 @@ six postures of design.md section 4 in order, holding each still for about a sec
    ``hold_frames`` > 1 the posture image is the per-pixel median of up to ``hold_frames``
    frames around the chosen one (:func:`held_frames`: contiguous in time, inside its still
    stretch, each silhouette's intersection over union with the chosen frame's at least
-   ``hold_iou``); 1 keeps the chosen frame alone. The background frames need no such step: the segmentation's
-   background model is fitted to all of them.
+   ``hold_iou``); 1 keeps the chosen frame alone. The background frames need no such
+   step: the segmentation's background model is fitted to all of them.
 """
 
 from __future__ import annotations
