@@ -208,3 +208,28 @@ def test_capture_picks_a_frame_inside_each_held_stretch(tmp_path):
     assert "not found in the video: pose4 (t_pose)" in done.stderr
     written = sorted(p.name for p in (tmp_path / "partial" / "poses").iterdir())
     assert written == ["pose1.png", "pose2.png", "pose3.png", "pose5.png", "pose6.png"]
+
+
+@pytest.mark.slow
+def test_capture_video_of_a_dataset_subject(tmp_path):
+    """make_video(subject=(seed, index)) films that subject: the body and camera of
+    make_subject's folder; original_clean/ is original/ without the sensor noise."""
+    pytest.importorskip("anny")
+    from torchfit.io.images import read_image
+    from torchfit.synth.generate import make_subject
+    from torchfit.synth.options import SynthConfig
+    from torchfit.synth.video import make_video
+
+    cfg = SynthConfig(stereo=False, image_size=[160, 128])
+    make_subject(tmp_path / "subject", 1000, 2, cfg)
+    make_video(tmp_path / "video", 1000, cfg, fps=3.0, subject=(1000, 2))
+    video, subject = tmp_path / "video", tmp_path / "subject"
+    assert (video / "camera.yaml").read_text() == (subject / "camera.yaml").read_text()
+    truth = json.loads((subject / "truth.json").read_text())
+    measured = json.loads((video / "truth.json").read_text())
+    assert measured and all(truth[key] == value for key, value in measured.items())
+    for k in range(1, 7):
+        noisy = read_image(tmp_path / "video" / "original" / "poses" / f"pose{k}.png")
+        clean = read_image(tmp_path / "video" / "original_clean" / "poses" / f"pose{k}.png")
+        difference = np.abs(noisy.astype(float) - clean).mean()
+        assert 0.5 < difference < 4.0  # sensor noise of 2 grey levels, nothing else
