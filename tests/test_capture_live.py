@@ -52,6 +52,8 @@ def live(tmp_path):
         "0",
         "--linger",
         "120",
+        "--hold-frames",
+        "3",
     ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
@@ -98,6 +100,11 @@ def test_page_serves_frame_status_and_captures(live):
         time.sleep(0.5)
     assert (out / "poses" / "pose1.png").is_file()
     assert len(list((out / "background").iterdir())) == 10
+    # the image is the median of the hold's last 3 frames (the same image, so all agree)
+    pose1 = json.loads((out / "capture.json").read_text())["postures"]["pose1"]
+    last = pose1["frame"]
+    assert pose1["combined_frames"] == [last - 2, last - 1, last]
+    assert 10 <= last < 24  # within posture 1's 14 frames after the 10 background ones
 
 
 @pytest.mark.slow

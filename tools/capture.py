@@ -1,7 +1,7 @@
 """Guided capture: from a video of the six postures to a subject folder.
 
     python tools/capture.py --video FILE_OR_FRAME_FOLDER --camera camera.yaml --out SUBJECT_DIR \
-        [--height-m H] [--config FILE] [--set key=value]
+        [--height-m H] [--hold-frames N] [--min-score S] [--config FILE] [--set key=value]
 
 The video (a video file OpenCV can read, or a folder of frames sorted by name) starts with the
 empty scene; the person then walks onto the floor mark and strikes the six postures of
@@ -9,19 +9,27 @@ design.md section 4 in order, holding each still for about a second. The tool ta
 background frames from the empty start, segments the later frames, finds the still stretches
 and, for each posture in order, picks the frame whose silhouette best matches the posture's
 template silhouette projected with the camera (scaled to ``--height-m``, or to the
-silhouette's height) (torchfit.capture.offline).
+silhouette's height) (torchfit.capture.offline). A held posture's image is the per-pixel
+median of up to ``--hold-frames`` frames around the chosen one (contiguous, inside its still
+stretch, each silhouette overlapping the chosen frame's with an intersection over union of at
+least ``--hold-iou``), which removes most of one frame's sensor noise; ``--hold-frames 1``
+(the default) writes the chosen frame itself. On the development subjects the median did not
+bring the fit closer to the original images (benchmarks/RESULTS.md, Calibration and capture).
 
 Writes ``SUBJECT_DIR/background/bg01.png`` …, ``poses/pose1.png`` … ``pose6.png``, a copy of
-``camera.yaml`` and ``capture.json`` (the background frames, the chosen frame and match score
-per posture, the still stretches). A posture not found is named in an error; the postures
-found are still written. Only the ``segmentation:`` section of ``--config`` is used.
+``camera.yaml`` and ``capture.json`` (the background frames, the chosen frame, the frames
+combined and the match score per posture, the still stretches). A posture not found is named
+in an error; the postures found are still written. Only the ``segmentation:`` section of
+``--config`` is used.
 
 Live (``--device 0``, or a video file standing in for the camera): the guidance of the first
 paper's section 9 as a web page on the loopback interface only, ``http://127.0.0.1:PORT``
 (``--port``, default 8765; the address is printed): the live image with the target posture's
 template contour and the match score. Step out of view for the first 10 frames (the
-background); a posture is captured when its score stays at least 0.5 for a second, then the
-next one is the target.
+background); a posture is captured when its score stays at least ``--min-score`` (0.5) for
+a second, then the
+next one is the target; its image is the median of the last frames of that second (up to
+``--hold-frames``) whose silhouettes agree with the last one's.
 
 Exit codes: 0 all six postures captured; 1 some posture not found (the others written);
 2 bad arguments or config; 3 the outputs cannot be written; 4 the video or camera missing or
@@ -49,6 +57,8 @@ from torchfit.io.camera import load_camera, save_camera  # noqa: E402
 from torchfit.io.files import write_atomic  # noqa: E402
 from torchfit.io.images import list_images, read_image, write_image  # noqa: E402
 
+DEFAULT_HOLD_FRAMES = 1
+DEFAULT_HOLD_IOU = 0.97
 POSTURE_NAMES = ("stand", "straddle", "side_knee", "t_pose", "cactus", "side_stand")
 
 
@@ -94,6 +104,28 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--camera", required=True, type=Path, help="camera.yaml of the video")
     p.add_argument("--out", required=True, type=Path, help="the subject folder to write")
     p.add_argument("--height-m", type=float, help="the person's height, metres")
+    p.add_argument(
+        "--hold-frames",
+        type=int,
+        default=DEFAULT_HOLD_FRAMES,
+        metavar="N",
+        help="frames combined (per-pixel median) per posture image; 1: the chosen frame alone "
+        f"(default {DEFAULT_HOLD_FRAMES})",
+    )
+    p.add_argument(
+        "--hold-iou",
+        type=float,
+        default=DEFAULT_HOLD_IOU,
+        help="a combined frame's silhouette overlap (IoU) with the chosen frame's, at least "
+        f"(default {DEFAULT_HOLD_IOU})",
+    )
+    p.add_argument(
+        "--min-score",
+        type=float,
+        default=0.5,
+        help="a posture's frame must match its template with at least this intersection "
+        "over union (default 0.5)",
+    )
     p.add_argument("--config", type=Path, help="torchfit config YAML (segmentation: section)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--port", type=int, default=8765, help="live: the page's port (0: any free)")
@@ -103,6 +135,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.height_m is not None and not 0.5 < args.height_m < 2.8:
         p.error(f"--height-m must be a person's height in metres, got {args.height_m}")
+    if args.hold_frames < 1:
+        p.error(f"--hold-frames must be at least 1, got {args.hold_frames}")
+    if not 0.0 < args.min_score < 1.0:
+        p.error(f"--min-score must be in (0, 1), got {args.min_score}")
+    if not 0.0 < args.hold_iou <= 1.0:
+        p.error(f"--hold-iou must be in (0, 1], got {args.hold_iou}")
     return args
 
 
@@ -114,6 +152,7 @@ def live(args: argparse.Namespace, config: Config) -> int:
     """``--device``: the guidance page while capturing (torchfit.capture.live)."""
     from torchfit.body.model import BodyModel
     from torchfit.capture.live import GuidanceServer, run_live
+    from torchfit.capture.offline import CaptureOptions
 
     try:
         camera = load_camera(args.camera)
@@ -130,7 +169,16 @@ def live(args: argparse.Namespace, config: Config) -> int:
     print(f"guidance at {server.url}", flush=True)
     try:
         captured = run_live(
-            source, camera, model, args.out, server, args.height_m, config.segmentation
+            source,
+            camera,
+            model,
+            args.out,
+            server,
+            args.height_m,
+            config.segmentation,
+            CaptureOptions(
+                min_score=args.min_score, hold_frames=args.hold_frames, hold_iou=args.hold_iou
+            ),
         )
         time.sleep(max(args.linger, 0.0))
     except TorchfitError as exc:
@@ -163,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
         camera = load_camera(args.camera)
         frames, fps = read_video(args.video)
         from torchfit.body.model import BodyModel
-        from torchfit.capture.offline import capture_from_frames
+        from torchfit.capture.offline import CaptureOptions, capture_from_frames, median_frame
 
         model = BodyModel(config.model.template)
         result = capture_from_frames(
@@ -172,6 +220,9 @@ def main(argv: list[str] | None = None) -> int:
             model,
             args.height_m,
             config.segmentation,
+            CaptureOptions(
+                min_score=args.min_score, hold_frames=args.hold_frames, hold_iou=args.hold_iou
+            ),
             progress=lambda n: tqdm(total=n, desc="segment", unit="frame"),
         )
     except TorchfitError as exc:
@@ -182,12 +233,15 @@ def main(argv: list[str] | None = None) -> int:
         "fps": fps,
         "frames": int(frames.shape[0]),
         "height_m": args.height_m,
+        "hold_frames": args.hold_frames,
+        "hold_iou": args.hold_iou,
         "background_frames": result.background,
         "still_stretches": [list(s) for s in result.stretches],
         "postures": {
             f"pose{k}": {
                 "name": POSTURE_NAMES[k - 1],
                 "frame": result.chosen.get(k),
+                "combined_frames": result.combined.get(k),
                 "score": round(result.scores.get(k, 0.0), 4),
             }
             for k in range(1, 7)
@@ -196,8 +250,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for n, i in enumerate(result.background, start=1):
             write_image(args.out / "background" / f"bg{n:02d}.png", _frame(frames, i))
-        for k, i in result.chosen.items():
-            write_image(args.out / "poses" / f"pose{k}.png", _frame(frames, i))
+        for k, indices in result.combined.items():
+            write_image(args.out / "poses" / f"pose{k}.png", median_frame(frames, indices))
         save_camera(camera, args.out / "camera.yaml")
         write_atomic(args.out / "capture.json", json.dumps(document, indent=1))
     except (OutputError, OSError) as exc:
@@ -205,14 +259,19 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     for k in range(1, 7):
         entry = document["postures"][f"pose{k}"]
-        where = f"frame {entry['frame']}" if entry["frame"] is not None else "NOT FOUND"
+        where = "NOT FOUND"
+        if entry["frame"] is not None:
+            used = entry["combined_frames"]
+            where = f"frame {entry['frame']} (median of {used[0]}-{used[-1]})"
+            if len(used) == 1:
+                where = f"frame {entry['frame']}"
         print(f"pose{k} ({entry['name']}): {where}, score {entry['score']:.3f}")
     if result.missing:
         names = ", ".join(f"pose{k} ({POSTURE_NAMES[k - 1]})" for k in result.missing)
         print(
             f"error: posture(s) not found in the video: {names} (no still stretch between "
-            f"the neighbouring postures matches with a score of at least 0.5); the others "
-            f"are written to {args.out}",
+            f"the neighbouring postures matches with a score of at least {args.min_score}); "
+            f"the others are written to {args.out}",
             file=sys.stderr,
         )
         return 1

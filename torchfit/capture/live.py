@@ -8,8 +8,12 @@ The page (``/``) shows ``/frame.png`` (the latest annotated frame) and ``/status
 The loop: the first ``background_frames`` frames are the empty scene (the person stays out of
 view); then each frame is segmented, the silhouette is scored against the current posture's
 template (:func:`torchfit.capture.offline.match_score`); when the score stays at least
-``min_score`` for ``hold_s`` seconds the frame is captured (``poses/pose<k>.png``) and the next
-posture is the target.
+``min_score`` for ``hold_s`` seconds the posture is captured (``poses/pose<k>.png``) and the
+next posture is the target. The image written is the per-pixel median of the last frames of
+that hold, up to ``options.hold_frames``, contiguous and each with a silhouette overlapping the
+last frame's by at least ``options.hold_iou`` (:func:`torchfit.capture.offline.held_frames`;
+``hold_frames`` 1: the last frame itself). ``capture.json`` records, per posture, the frame
+captured and the frames combined (counted from the first frame read).
 """
 
 from __future__ import annotations
@@ -26,11 +30,18 @@ import torch
 
 from torchfit.body.model import BodyModel
 from torchfit.camera import Camera
-from torchfit.capture.offline import CaptureOptions, match_score, template_silhouettes
+from torchfit.capture.offline import (
+    CaptureOptions,
+    held_frames,
+    match_score,
+    median_frame,
+    template_silhouettes,
+)
 from torchfit.errors import DataError
 from torchfit.image.background import fit_background
 from torchfit.image.segment import SegmentationOptions, segment
 from torchfit.io.camera import save_camera
+from torchfit.io.files import write_atomic
 from torchfit.io.images import write_image
 
 __all__ = ["GuidanceServer", "run_live", "POSTURE_NAMES"]
@@ -165,11 +176,15 @@ def run_live(
     empty: list[np.ndarray] = []
     model_bg = None
     target, held, captured = 1, 0, []
+    hold: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame number, frame, mask)
+    record: dict[str, dict] = {}
     save_camera(camera, out / "camera.yaml")
+    number = -1
     while target <= 6:
         ok, bgr = video.read()
         if not ok:
             break
+        number += 1
         frame = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         if frame.shape[:2] != (h, w):
             raise DataError(
@@ -195,15 +210,30 @@ def run_live(
             mask = segment(image, model_bg, segmentation).masks[0, 0].numpy()
             score = match_score(mask, templates[target - 1], height_m is None)
             held = held + 1 if score >= options.min_score else 0
+            hold = hold + [(number, frame, mask)] if held else []
             name = POSTURE_NAMES[target - 1]
             status.update(score=score, message=f"strike posture {target}: {name}")
             server.publish(
                 _annotate(frame, templates[target - 1], score, status["message"]), status
             )
             if held >= max(1, round(hold_s * fps)):
-                write_image(out / "poses" / f"pose{target}.png", frame)
+                last = len(hold) - 1
+                masks = np.stack([m for _, _, m in hold])
+                used = held_frames(masks, last, 0, last, options.hold_frames, options.hold_iou)
+                stack = torch.from_numpy(np.stack([hold[i][1] for i in used])).permute(0, 3, 1, 2)
+                write_image(
+                    out / "poses" / f"pose{target}.png",
+                    median_frame(stack, list(range(len(used)))),
+                )
+                record[f"pose{target}"] = {
+                    "name": name,
+                    "frame": number,
+                    "score": round(score, 4),
+                    "combined_frames": [hold[i][0] for i in used],
+                }
+                write_atomic(out / "capture.json", json.dumps({"postures": record}, indent=1))
                 captured.append(target)
-                target, held = target + 1, 0
+                target, held, hold = target + 1, 0, []
         if realtime:
             time.sleep(1.0 / fps)
     video.release()

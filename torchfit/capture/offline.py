@@ -12,12 +12,19 @@ six postures of design.md section 4 in order, holding each still for about a sec
 4. **Templates:** posture k's template body at its nominal angles, facing the camera on the
    mark (:func:`torchfit.body.postures.pose_nominal`), scaled to ``height_m`` (or the
    template's own height), projected with the camera. Before comparing, the template's
-   silhouette is scaled about its foot point to the frame's silhouette height (not when
-   ``height_m`` is given) and moved so that the two foot points coincide.
+   silhouette is scaled about its foot point (the lowest row, the column centroid) to the
+   frame's silhouette height (not when ``height_m`` is given) and moved so that the two foot
+   points coincide.
 5. **Matching:** the score of a frame for posture k is the intersection over union of the two
    silhouettes; each posture takes the best frame of one still stretch, the stretches in the
    postures' order (a dynamic programme over the stretches maximises the total score), and
    a posture whose best score is below ``min_score`` is not found.
+6. **Held frames:** a held posture's frames differ by sensor noise alone. With
+   ``hold_frames`` > 1 the posture image is the per-pixel median of up to ``hold_frames``
+   frames around the chosen one (:func:`held_frames`: contiguous in time, inside its still
+   stretch, each silhouette's intersection over union with the chosen frame's at least
+   ``hold_iou``); 1 keeps the chosen frame alone. The background frames need no such
+   step: the segmentation's background model is fitted to all of them.
 """
 
 from __future__ import annotations
@@ -46,6 +53,8 @@ __all__ = [
     "template_silhouettes",
     "match_score",
     "choose_frames",
+    "held_frames",
+    "median_frame",
     "capture_from_frames",
 ]
 
@@ -60,6 +69,14 @@ class CaptureOptions:
     min_still: int = 3  # frames
     min_score: float = 0.5  # intersection over union
     max_background: int = 10  # background frames kept (the first ones)
+    hold_frames: int = 1  # frames combined (per-pixel median) per posture image
+    hold_iou: float = 0.97  # a combined frame's silhouette IoU with the chosen frame's
+
+    def __post_init__(self) -> None:
+        if self.hold_frames < 1:
+            raise ValueError(f"hold_frames must be >= 1, got {self.hold_frames}")
+        if not 0.0 < self.hold_iou <= 1.0:
+            raise ValueError(f"hold_iou must be in (0, 1], got {self.hold_iou}")
 
 
 @dataclass
@@ -72,10 +89,13 @@ class CaptureResult:
         scores: posture number -> best score (found or not).
         stretches: the still stretches ``(first, last)`` (frame indices).
         missing: the posture numbers not found.
+        combined: posture number -> the frames whose median is its image (ascending; the
+            chosen frame alone with ``hold_frames`` 1).
     """
 
     background: list[int]
     chosen: dict[int, int] = field(default_factory=dict)
+    combined: dict[int, list[int]] = field(default_factory=dict)
     scores: dict[int, float] = field(default_factory=dict)
     stretches: list[tuple[int, int]] = field(default_factory=list)
     missing: list[int] = field(default_factory=list)
@@ -151,14 +171,16 @@ def _foot_and_height(mask: np.ndarray) -> tuple[float, float, float] | None:
     if rows.size == 0:
         return None
     top, bottom = rows[0], rows[-1]
-    cols = np.nonzero(mask[max(bottom - 5, top) : bottom + 1].any(0))[0]
-    return float(cols.mean()), float(bottom), float(bottom - top + 1)
+    # across: the silhouette's column centroid (the feet's columns move with a foot a few
+    # pixels higher than the other, e.g. in the straddle)
+    return float(np.nonzero(mask)[1].mean()), float(bottom), float(bottom - top + 1)
 
 
 def match_score(mask: np.ndarray, template: np.ndarray, rescale: bool = True) -> float:
     """Intersection over union of a silhouette and a template silhouette (both (H, W) bool),
-    the template moved so that the foot points coincide and, with ``rescale``, scaled about
-    its foot point to the silhouette's height."""
+    the template moved so that the foot points (the lowest row, the column centroid)
+    coincide and, with ``rescale``, scaled about its foot point to the silhouette's
+    height."""
     a, b = _foot_and_height(mask), _foot_and_height(template)
     if a is None or b is None:
         return 0.0
@@ -201,6 +223,46 @@ def choose_frames(scores: np.ndarray, min_score: float) -> list[int | None]:
             k += 1
             s += 1
     return out
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = float((a | b).sum())
+    return float((a & b).sum()) / union if union else 0.0
+
+
+def held_frames(
+    masks: np.ndarray, chosen: int, first: int, last: int, count: int, min_iou: float
+) -> list[int]:
+    """The frames to combine with frame ``chosen`` (ascending, ``chosen`` among them).
+
+    Grows a contiguous run from ``chosen`` one frame at a time, alternately after and before
+    it, within ``first``..``last``, up to ``count`` frames; a side stops at the first frame
+    whose silhouette's intersection over union with the chosen frame's is below ``min_iou``
+    (``masks`` (N, H, W) bool, indexed by frame)."""
+    lo = hi = chosen
+    open_after, open_before = True, True
+    while hi - lo + 1 < count and (open_after or open_before):
+        if open_after:
+            if hi + 1 <= last and _iou(masks[hi + 1], masks[chosen]) >= min_iou:
+                hi += 1
+            else:
+                open_after = False
+        if hi - lo + 1 < count and open_before:
+            if lo - 1 >= first and _iou(masks[lo - 1], masks[chosen]) >= min_iou:
+                lo -= 1
+            else:
+                open_before = False
+    return list(range(lo, hi + 1))
+
+
+def median_frame(frames: torch.Tensor, indices: list[int]) -> np.ndarray:
+    """(H, W, 3) uint8 RGB: the per-pixel, per-channel median of ``frames[indices]``
+    (frames (N, 3, H, W) uint8 or float in [0, 1]; the mean of the two middle values for an
+    even count, rounded)."""
+    stack = frames[indices].permute(0, 2, 3, 1).double().numpy()
+    if frames.dtype != torch.uint8:
+        stack = stack * 255.0
+    return np.clip(np.round(np.median(stack, axis=0)), 0, 255).astype(np.uint8)
 
 
 def capture_from_frames(
@@ -271,4 +333,14 @@ def capture_from_frames(
         else:
             result.chosen[k] = int(where[k - 1, s])
             result.scores[k] = float(table[k - 1, s])
+            a, b = result.stretches[s]
+            local = held_frames(
+                host,
+                result.chosen[k] - n_empty,
+                a - n_empty,
+                b - n_empty,
+                options.hold_frames,
+                options.hold_iou,
+            )
+            result.combined[k] = [i + n_empty for i in local]
     return result

@@ -6,7 +6,13 @@ Written to a folder: ``frames/000000.png`` …, ``camera.yaml``, ``truth.json`` 
 ``video.json`` (the frame rate and, per posture, the first and last frame of its held
 stretch), and beside them ``original/``: a subject folder (design.md section 3) whose
 background frames are the first empty frames and whose ``poses/pose<k>.png`` is the middle
-frame of posture k's held stretch, the images a capture should reproduce.
+frame of posture k's held stretch, the images a capture should reproduce, and
+``original_clean/``: the same with each posture image rendered without sensor noise (the
+background frames as in ``original/``).
+
+The subject is drawn from the seed, or (``subject=(seed, index)``) is subject ``index`` of a
+dataset made with that seed (:func:`torchfit.synth.generate.subject_scene`): the same body,
+clothes, room, light and camera as that subject folder.
 
 A held posture is perfectly still: its frames differ only by sensor noise.
 """
@@ -22,7 +28,7 @@ import numpy as np
 
 from torchfit.io.camera import save_camera
 from torchfit.synth.body import load_anny
-from torchfit.synth.generate import _place, _truth, _write_png
+from torchfit.synth.generate import _place, _truth, _write_png, subject_scene
 from torchfit.synth.options import SynthConfig
 from torchfit.synth.postures import POSTURES, axis_angle, perturb
 from torchfit.synth.room import Light
@@ -46,6 +52,7 @@ def make_video(
     hold_s: float = 1.2,
     transition_s: float = 0.8,
     model: Any = None,
+    subject: tuple[int, int] | None = None,
 ) -> dict:
     """Write a synthetic capture video and its original subject folder.
 
@@ -57,31 +64,42 @@ def make_video(
         empty_s, walk_s, hold_s, transition_s: the empty start, the walk onto the mark, each
             held posture and each transition between postures, seconds.
         model: an anny model (default: :func:`torchfit.synth.body.load_anny`).
+        subject: ``(dataset seed, index)``: film that dataset subject (its body, room, light
+            and camera; ``cfg`` must be the dataset's) instead of one drawn from ``seed``.
 
     Returns:
         The ``video.json`` document.
     """
     cfg = cfg or SynthConfig(stereo=False)
     folder = Path(folder)
-    rng = np.random.default_rng([seed, 0])
     size = (int(cfg.image_size[0]), int(cfg.image_size[1]))
-    phen, _ = sample_phenotype(rng)
-    body = body_with_height(phen, rng.uniform(*cfg.height_range_m), model or load_anny())
-    faces = body.faces
-    v = body.pose({}).vertices
-    volume = np.einsum("ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]], v[faces[:, 2]])).sum()
-    if volume < 0:
-        faces = faces[:, ::-1].copy()
-    albedo = sample_albedo(body, rng)
-    azimuth = rng.uniform(0, 2 * math.pi)
-    distance = rng.uniform(*cfg.camera_distance_m)
-    room = sample_room(rng, azimuth, distance)
-    light_dir = np.array([math.cos(azimuth + 0.6), math.sin(azimuth + 0.6), 1.6])
-    light = Light(light_dir / np.linalg.norm(light_dir), ambient=0.45, diffuse=0.6)
-    horiz = np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
-    centre = horiz * distance + np.array([0.0, 0.0, rng.uniform(*cfg.camera_height_m)])
-    camera = sample_camera(rng, centre, np.array([0.0, 0.0, 1.0]), size, 2.8)
-    facing = math.atan2(centre[1], centre[0])
+    if subject is not None:
+        scene = subject_scene(subject[0], subject[1], cfg, model or load_anny())
+        rng, body, faces, albedo = scene.rng, scene.body, scene.faces, scene.albedo
+        room, light, camera, facing = scene.room, scene.light, scene.camera, scene.facing
+        azimuth = scene.azimuth
+        horiz = np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
+    else:
+        rng = np.random.default_rng([seed, 0])
+        phen, _ = sample_phenotype(rng)
+        body = body_with_height(phen, rng.uniform(*cfg.height_range_m), model or load_anny())
+        faces = body.faces
+        v = body.pose({}).vertices
+        volume = np.einsum(
+            "ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]], v[faces[:, 2]])
+        ).sum()
+        if volume < 0:
+            faces = faces[:, ::-1].copy()
+        albedo = sample_albedo(body, rng)
+        azimuth = rng.uniform(0, 2 * math.pi)
+        distance = rng.uniform(*cfg.camera_distance_m)
+        room = sample_room(rng, azimuth, distance)
+        light_dir = np.array([math.cos(azimuth + 0.6), math.sin(azimuth + 0.6), 1.6])
+        light = Light(light_dir / np.linalg.norm(light_dir), ambient=0.45, diffuse=0.6)
+        horiz = np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
+        centre = horiz * distance + np.array([0.0, 0.0, rng.uniform(*cfg.camera_height_m)])
+        camera = sample_camera(rng, centre, np.array([0.0, 0.0, 1.0]), size, 2.8)
+        facing = math.atan2(centre[1], centre[0])
     side = np.cross([0.0, 0.0, 1.0], horiz)  # the person walks in from the side
 
     # key poses: angles, yaw, floor offset
@@ -138,17 +156,23 @@ def make_video(
     truth = _truth(body)
     (folder / "truth.json").write_text(json.dumps(truth, indent=1))
 
-    original = folder / "original"
-    for i in range(min(n_empty, 5)):
-        data = (frames_dir / f"{i:06d}.png").read_bytes()
-        (original / "background").mkdir(parents=True, exist_ok=True)
-        (original / "background" / f"bg{i + 1:02d}.png").write_bytes(data)
-    (original / "poses").mkdir(parents=True, exist_ok=True)
-    for name, (a, b) in holds.items():
-        data = (frames_dir / f"{(a + b) // 2:06d}.png").read_bytes()
-        (original / "poses" / f"{name}.png").write_bytes(data)
-    save_camera(camera, original / "camera.yaml")
-    (original / "truth.json").write_text(json.dumps(truth, indent=1))
+    for name, clean in (("original", False), ("original_clean", True)):
+        original = folder / name
+        for i in range(min(n_empty, 5)):
+            data = (frames_dir / f"{i:06d}.png").read_bytes()
+            (original / "background").mkdir(parents=True, exist_ok=True)
+            (original / "background" / f"bg{i + 1:02d}.png").write_bytes(data)
+        (original / "poses").mkdir(parents=True, exist_ok=True)
+        for pose, (a, b) in holds.items():
+            path = original / "poses" / f"{pose}.png"
+            if clean:  # no noise drawn: the video's random stream is left as it was
+                colour = rendered[id(states[(a + b) // 2])]
+                image = finish(colour, np.random.default_rng(0), np.ones(3), 0.0)
+                _write_png(path, image, cfg.png_compression)
+            else:
+                path.write_bytes((frames_dir / f"{(a + b) // 2:06d}.png").read_bytes())
+        save_camera(camera, original / "camera.yaml")
+        (original / "truth.json").write_text(json.dumps(truth, indent=1))
     doc = {"fps": fps, "frames": len(states), "empty": [0, n_empty - 1], "holds": holds}
     (folder / "video.json").write_text(json.dumps(doc, indent=1))
     return doc
