@@ -51,7 +51,8 @@ def test_pin_residual_and_jacobian_row(problem):
         2, fit.num_params, generator=g, dtype=torch.float64
     )
     ratio = _span_ratio(fit)
-    pinned = PinnedFit(fit, ratio, torch.tensor([1.1, math.nan], dtype=torch.float64))
+    tolerance = torch.tensor([1e-4, 1e-4], dtype=torch.float64)
+    pinned = PinnedFit(fit, ratio, torch.tensor([1.1, math.nan], dtype=torch.float64), tolerance)
     sel = fit.select(x)
     r = pinned.residual(x, sel)
     assert r.shape[1] == fit.residual_layout.size + 1
@@ -81,7 +82,7 @@ def test_pinning_what_the_images_show_costs_them(problem):
     fit = problem.subset([0, 0, 0])
     target = torch.tensor([fitted * 1.05, fitted, math.nan], dtype=torch.float64)
     cost, reached = pinning_cost(fit, x.expand(3, -1), stage, ratio, target, LMOptions(max_iter=20))
-    assert float(reached[0]) == pytest.approx(fitted * 1.05, abs=1e-3)
+    assert float(reached[0]) == pytest.approx(fitted * 1.05, abs=0.01 * fitted)
     assert float(reached[1]) == pytest.approx(fitted, abs=1e-3)
     rise_off, rise_at = float(cost[0] - cost[2]), float(cost[1] - cost[2])
     assert rise_off > 2.0, (rise_off, rise_at)  # an arm span 5 % off the T-pose's

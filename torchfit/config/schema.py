@@ -200,7 +200,7 @@ class FitConfig(FitOptions):
     batch_size: int = 4
     max_contour_rms_px: float = 15.0
     prior: PriorOptions = field(default_factory=PriorOptions)
-    proportion_evidence: float = 1.0
+    proportion_evidence: float = 5.0
     evidence_iterations: int = 20
 
 

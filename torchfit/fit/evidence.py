@@ -1,8 +1,9 @@
 """How clearly the images show a quantity of the fitted body: pin it elsewhere and refit.
 
 At a fitted point, pin a scalar function ``q`` of the parameters (a segment's ratio to the
-height, say) at another value ``t`` and refit: the same problem (prior and known facts
-included), plus one residual ``(q(x) − t) / tolerance`` that holds ``q`` there. What the
+height, say) at another value ``t`` and refit: the images' problem (no prior or known facts:
+with them, a pin away from the prior's pull lets the images fit better at the prior's
+expense), plus one residual ``(q(x) − t) / tolerance`` that holds ``q`` there. What the
 images pay for it is how much higher their robust cost ``Σ ρ(r²)`` over the image residuals
 (e_P and e_M of every posture; not the barrier, prior or facts) ends than in the same refit
 without the pin (a control: the fit it starts from may not be quite converged). An e_P block
@@ -29,8 +30,10 @@ from torchfit.solver.robust import robust_cost
 
 __all__ = ["PinnedFit", "image_cost", "pinning_cost"]
 
-#: The pin's tolerance: a quantity this far from its target costs as much as ``Σ r² = 1``.
-PIN_TOLERANCE = 1e-4
+#: The pin's tolerance, as a share of the distance from the fit to the target: a pin far
+#: stiffer than the images would dominate the solver's scaling and damping, and the refit
+#: would pay any image cost to satisfy it.
+PIN_SHARE = 0.05
 
 
 class PinnedFit:
@@ -43,7 +46,7 @@ class PinnedFit:
         quantity: ``(full, rows)``: (N, P) parameter rows of the subjects ``rows`` (N,) ->
             (N,) their pinned quantity, differentiable.
         target: (B,) the value each subject's quantity is pinned at (NaN: not pinned).
-        tolerance: see :data:`PIN_TOLERANCE`.
+        tolerance: (B,) a deviation from the target that costs as much as ``Σ r² = 1``.
     """
 
     def __init__(
@@ -51,7 +54,7 @@ class PinnedFit:
         fit: SilhouetteFit,
         quantity: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
         target: torch.Tensor,
-        tolerance: float = PIN_TOLERANCE,
+        tolerance: torch.Tensor,
     ) -> None:
         self.fit = fit
         self.quantity = quantity
@@ -69,7 +72,7 @@ class PinnedFit:
         target = self.target[rows]
         free = torch.isnan(target)
         q = self.quantity(full, rows)
-        r = (q - torch.where(free, q.detach(), target)) / self.tolerance
+        r = (q - torch.where(free, q.detach(), target)) / self.tolerance[rows]
         return torch.where(free, torch.zeros_like(r), r)[:, None]
 
     def residual(self, full, selections=None, rows=None) -> torch.Tensor:
@@ -128,12 +131,18 @@ def pinning_cost(
 
     Returns:
         ``(cost, reached)``, each (B,): the images' robust cost ``Σ ρ(r²)`` at the refit, and
-        the quantity there (the target within the pin's tolerance, unless the solver stopped
-        short). What a pin costs the images is its row's cost minus its control's.
+        the quantity there (near the target: the pin's tolerance is :data:`PIN_SHARE` of the
+        way). What a pin costs the images is its row's cost minus its control's.
     """
     if stage.loss is not None:
         options = replace(options, loss=stage.loss)
-    x, _ = solve_stage(PinnedFit(fit, quantity, target), full, stage, options)
+    # every row runs all its iterations: a control that stops at once (its start meets the
+    # tolerances) would be compared with pinned rows that went on descending
+    options = replace(options, ftol=1e-15, xtol=1e-15, gtol=1e-15)
+    with torch.no_grad():
+        start = quantity(full, torch.arange(full.shape[0], device=full.device))
+    tolerance = (PIN_SHARE * (target - start).abs()).nan_to_num(1.0).clamp_min(1e-6)
+    x, _ = solve_stage(PinnedFit(fit, quantity, target, tolerance), full, stage, options)
     with torch.no_grad():
         reached = quantity(x, torch.arange(x.shape[0], device=x.device))
     return image_cost(fit, x, options.loss, options.loss_scale), reached

@@ -313,9 +313,12 @@ def _shown(
     fit: SilhouetteFit, x: torch.Tensor, i: int, outliers: list[Outlier], config: Config
 ) -> list[float]:
     """What the images of subject ``i`` pay when each outlying ratio is pinned at its bound
-    (:func:`torchfit.fit.evidence.pinning_cost`: one row per outlier and a control row)."""
+    (:func:`torchfit.fit.evidence.pinning_cost`: one row per outlier and a control row, the
+    images' residuals alone)."""
     n = len(outliers)
-    sub = fit.subset([i] * (n + 1))
+    # the images alone: with the prior (or a known height) in the refit, a pin away from the
+    # prior's pull lets the images fit better at the prior's expense
+    sub = SilhouetteFit.subset(fit, [i] * (n + 1))
     keys = [o.key for o in outliers] + ["height_m"]
 
     def ratio(full: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
