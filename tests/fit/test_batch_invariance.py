@@ -11,6 +11,7 @@ import pytest
 import torch
 from template_subjects import make_template_subject
 
+from torchfit.body import BodyModel
 from torchfit.body.measure import measure_model
 from torchfit.camera import stack_cameras
 from torchfit.fit import (
@@ -20,6 +21,7 @@ from torchfit.fit import (
     person_data_from_masks,
     solve_stage,
 )
+from torchfit.fit.stages import SOLVER_DTYPE
 from torchfit.image import SegmentationOptions, fit_background, segment
 from torchfit.io.dataset import load_subject
 from torchfit.io.images import load_frames
@@ -70,3 +72,30 @@ def test_a_subject_alone_equals_it_first_and_second_in_other_batches(model, mask
         torch.testing.assert_close(x[i : i + 1], alone_x, rtol=0, atol=0)
         for key, value in alone_m.items():
             assert abs(float(measures[key][i]) - float(value[0])) <= 1e-9, key
+
+
+def test_float32_fit_is_batch_invariant_with_a_float64_solver(masks):
+    """A float32 fit (residuals and Jacobian in float32, the solver's state in float64) gives
+    a subject the same parameters alone as in a batch, and its solver result is float64."""
+    model32 = BodyModel("mpeg4_full", dtype=torch.float32)
+    stage = STAGES[0]
+
+    def one_stage(names):
+        person = person_data_from_masks(
+            torch.stack([masks[n][0] for n in names]),
+            stack_cameras([masks[n][1] for n in names]),
+            dtype=torch.float32,
+        )
+        fit = SilhouetteFit(model32, person, FitOptions(poses=POSES))
+        options = LMOptions(max_iter=stage.max_iter, min_diag=1.0)
+        return solve_stage(fit, fit.initial_params(), stage, options)
+
+    alone_x, alone = one_stage(["a"])
+    assert alone_x.dtype == torch.float32
+    assert alone.x.dtype == alone.cost.dtype == SOLVER_DTYPE == torch.float64
+    assert int(alone.n_iter[0]) == stage.max_iter
+    for names in (["a", "b"], ["c", "a"]):
+        x, result = one_stage(names)
+        i = names.index("a")
+        torch.testing.assert_close(x[i : i + 1], alone_x, rtol=0, atol=0)
+        torch.testing.assert_close(result.x[i : i + 1], alone.x, rtol=0, atol=0)
