@@ -11,6 +11,7 @@ import pytest
 import torch
 from template_subjects import make_template_subject
 
+from torchfit.body import BodyModel
 from torchfit.body.measure import measure_model
 from torchfit.camera import stack_cameras
 from torchfit.fit import (
@@ -20,6 +21,8 @@ from torchfit.fit import (
     person_data_from_masks,
     solve_stage,
 )
+from torchfit.fit.prior import PriorFit, PriorOptions, load_prior
+from torchfit.fit.stages import SOLVER_DTYPE
 from torchfit.image import SegmentationOptions, fit_background, segment
 from torchfit.io.dataset import load_subject
 from torchfit.io.images import load_frames
@@ -70,3 +73,82 @@ def test_a_subject_alone_equals_it_first_and_second_in_other_batches(model, mask
         torch.testing.assert_close(x[i : i + 1], alone_x, rtol=0, atol=0)
         for key, value in alone_m.items():
             assert abs(float(measures[key][i]) - float(value[0])) <= 1e-9, key
+
+
+def test_float32_fit_is_batch_invariant_with_a_float64_solver(masks):
+    """A float32 fit (residuals and Jacobian in float32, the solver's state in float64) gives
+    a subject the same parameters alone as in a batch, and its solver result is float64."""
+    model32 = BodyModel("mpeg4_full", dtype=torch.float32)
+    stage = STAGES[0]
+
+    def one_stage(names):
+        person = person_data_from_masks(
+            torch.stack([masks[n][0] for n in names]),
+            stack_cameras([masks[n][1] for n in names]),
+            dtype=torch.float32,
+        )
+        fit = SilhouetteFit(model32, person, FitOptions(poses=POSES))
+        options = LMOptions(max_iter=stage.max_iter, min_diag=1.0)
+        return solve_stage(fit, fit.initial_params(), stage, options)
+
+    alone_x, alone = one_stage(["a"])
+    assert alone_x.dtype == torch.float32
+    assert alone.x.dtype == alone.cost.dtype == SOLVER_DTYPE == torch.float64
+    assert int(alone.n_iter[0]) == stage.max_iter
+    for names in (["a", "b"], ["c", "a"]):
+        x, result = one_stage(names)
+        i = names.index("a")
+        torch.testing.assert_close(x[i : i + 1], alone_x, rtol=0, atol=0)
+        torch.testing.assert_close(result.x[i : i + 1], alone.x, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_prior_residual_of_a_subject_does_not_depend_on_its_batch(masks, dtype):
+    """The prior's whitened residuals of a subject, alone and in a batch of four, are the same
+    bits (a batched matrix product rounds one row differently from several)."""
+    model = BodyModel("mpeg4_full", dtype=dtype)
+    person = person_data_from_masks(
+        torch.stack([masks[n][0] for n in "abca"]),
+        stack_cameras([masks[n][1] for n in "abca"]),
+        dtype=dtype,
+    )
+    fit = PriorFit(
+        model,
+        person,
+        FitOptions(poses=POSES),
+        prior=load_prior("ansur2"),
+        prior_options=PriorOptions(weight=0.3),
+    )
+    g = torch.Generator().manual_seed(0)
+    start = fit.initial_params()
+    rows = torch.arange(4)
+    for _ in range(5):
+        x = start * (1 + 0.2 * torch.rand(start.shape, generator=g, dtype=torch.float64).to(dtype))
+        batch = fit.prior_residual(x, rows)
+        for i in range(4):
+            alone = fit.prior_residual(x[i : i + 1], rows[i : i + 1])
+            torch.testing.assert_close(alone, batch[i : i + 1], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_prior_fit_is_batch_invariant(masks, dtype):
+    """With the population prior (its whitening product per subject) a subject gets the same
+    parameters alone as in a batch, in either dtype."""
+    model = BodyModel("mpeg4_full", dtype=dtype)
+    prior, weight = load_prior("ansur2"), PriorOptions(weight=0.3)
+    stage = STAGES[1]
+
+    def one_stage(names):
+        person = person_data_from_masks(
+            torch.stack([masks[n][0] for n in names]),
+            stack_cameras([masks[n][1] for n in names]),
+            dtype=dtype,
+        )
+        fit = PriorFit(model, person, FitOptions(poses=POSES), prior=prior, prior_options=weight)
+        options = LMOptions(max_iter=stage.max_iter, min_diag=1.0)
+        return solve_stage(fit, fit.initial_params(), stage, options)[0]
+
+    alone = one_stage(["a"])
+    for names in (["a", "b"], ["c", "a"]):
+        i = names.index("a")
+        torch.testing.assert_close(one_stage(names)[i : i + 1], alone, rtol=0, atol=0)

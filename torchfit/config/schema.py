@@ -49,7 +49,8 @@ class RunConfig:
         name: the run's name; the run folder is ``runs/<name>`` unless ``out`` is set.
         out: the run folder.
         device: torch device of the fit (``cpu``, ``cuda``, ``cuda:1``).
-        dtype: floating-point type of the fit.
+        dtype: floating-point type of the fit's model, residuals and Jacobian; the solver's
+            state is float64 either way (:data:`torchfit.fit.stages.SOLVER_DTYPE`).
         seed: random seed.
         resume: skip subjects whose outputs are complete.
         num_threads: torch CPU threads of each fit process (None: the CPUs divided by

@@ -257,7 +257,9 @@ class PriorFit(SilhouetteFit):
         if self.prior is None:
             return full.new_zeros(full.shape[0], 0)
         logs = full[:, self.prior_columns].clamp_min(1e-3).log() - self.prior_mu[rows]
-        return self.prior_options.weight * (self.prior_inv[rows] @ logs[..., None])[..., 0]
+        # products and a row sum, not a batched matrix product (which rounds a subject's row
+        # differently alone than beside others)
+        return self.prior_options.weight * (self.prior_inv[rows] * logs[:, None, :]).sum(-1)
 
     def height_residual(self, full: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         """(N, 1) e_H (zero where the height is not known)."""

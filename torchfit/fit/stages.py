@@ -4,6 +4,15 @@ A stage frees some scale groups and, for every posture, its joints and/or its ro
 the other parameters stay where the previous stage left them. The discrete model-contour
 choice is held fixed while the solver tries steps, so every trial is judged on the same smooth
 objective, and it is refreshed at each accepted point (where the Jacobian is computed).
+
+The solver itself always works in float64: in a float32 fit (the model's dtype) the posing,
+projection, contour choice, residuals and Jacobian run in float32 and are widened for the
+solver, which keeps the parameters, the normal equations ``JᵀJ``, ``Jᵀr``, the Cholesky
+solve, the cost and its convergence tests in float64 (float32 cannot resolve a relative change
+of the parameters below about 1e-7, nor a relative reduction of the cost of the order of the
+tolerances). In a float64 fit nothing is converted. The forward-difference Jacobian
+(``"numeric"``, for checks) steps by the square root of the solver's machine epsilon, so with
+it the solver stays in the model's dtype.
 """
 
 from __future__ import annotations
@@ -19,7 +28,18 @@ from torchfit.fit.problem import SilhouetteFit
 from torchfit.solver import LMOptions, LMResult, levenberg_marquardt
 from torchfit.solver.jacobians import make_jacobian
 
-__all__ = ["StageOptions", "JACOBIANS", "solve_stage", "pose_contour_rms", "pose_outliers"]
+__all__ = [
+    "StageOptions",
+    "JACOBIANS",
+    "SOLVER_DTYPE",
+    "solve_stage",
+    "pose_contour_rms",
+    "pose_outliers",
+]
+
+#: The dtype of the solver's state in a stage, whatever the model's (but with the
+#: ``"numeric"`` Jacobian; see the module docstring).
+SOLVER_DTYPE = torch.float64
 
 #: The Jacobians a stage can use: ``"autograd"`` the problem's own (forward-mode pixel
 #: tangents of the contour vertices times reverse-mode local derivatives, per posture);
@@ -72,7 +92,8 @@ def solve_stage(
         callback: optional solver callback (:class:`torchfit.solver.LMIterate` per iteration).
 
     Returns:
-        (B, P) parameters after the stage, and the solver's result over the free ones.
+        (B, P) parameters after the stage (in ``full``'s dtype), and the solver's result
+        over the free ones (in :data:`SOLVER_DTYPE`, see the module docstring).
 
     Raises:
         ValueError: an unknown ``jacobian``.
@@ -80,25 +101,29 @@ def solve_stage(
     if jacobian not in JACOBIANS:
         raise ValueError(f"jacobian: expected one of {list(JACOBIANS)}, got {jacobian!r}")
     free = fit.stage_indices(list(stage.scales), stage.joints, stage.root)
-    base = full.detach().clone()
+    work = fit.kw["dtype"]
+    solver_dtype = work if jacobian == "numeric" else SOLVER_DTYPE
+    base = full.detach().to(solver_dtype, copy=True)
     mask = fit.residual_mask()
     chosen = _Selections(fit)
-    onehot = torch.zeros(free.numel(), base.shape[1], **fit.kw)
+    onehot = torch.zeros(free.numel(), base.shape[1], dtype=solver_dtype, device=base.device)
     onehot[torch.arange(free.numel()), free] = 1.0
 
     def expand(x: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        # exact: each column of x @ onehot holds one x entry (times 1) and zeros
-        return base[rows] * (1 - onehot.sum(0)) + x @ onehot
+        # exact: each column of x @ onehot holds one x entry (times 1) and zeros; then in the
+        # model's dtype (a float32 fit rounds the solver's float64 parameters here)
+        return (base[rows] * (1 - onehot.sum(0)) + x @ onehot).to(work)
 
     def residual_fn(x: torch.Tensor, rows: torch.Tensor):
         full_x = expand(x, rows)
-        return fit.residual(full_x, chosen.take(rows, full_x), rows), mask[rows]
+        r = fit.residual(full_x, chosen.take(rows, full_x), rows)
+        return r.to(solver_dtype), mask[rows]
 
     def own_jacobian(x: torch.Tensor, rows: torch.Tensor):
         full_x = expand(x, rows)
         sel = chosen.refresh(rows, full_x)
         jac = fit.jacobian(full_x, free, sel, rows)
-        return jac, fit.residual(full_x, sel, rows)
+        return jac.to(solver_dtype), fit.residual(full_x, sel, rows).to(solver_dtype)
 
     def generic_jacobian(x: torch.Tensor, rows: torch.Tensor):
         chosen.refresh(rows, expand(x, rows))
@@ -114,7 +139,7 @@ def solve_stage(
         )
         return generic(x, r, mask[rows]), r
 
-    x0 = full[:, free].detach().clone()
+    x0 = base[:, free].clone()
     result = levenberg_marquardt(
         residual_fn,
         x0,
@@ -122,10 +147,10 @@ def solve_stage(
         jacobian=own_jacobian if jacobian == "autograd" else generic_jacobian,
         callback=callback,
         indexed=True,
-        loss_units=fit.loss_units(),
+        loss_units=fit.loss_units().to(solver_dtype),
     )
     out = full.detach().clone()
-    out[:, free] = result.x
+    out[:, free] = result.x.to(out.dtype)
     return out, result
 
 
