@@ -187,12 +187,6 @@ class FitConfig(FitOptions):
             ``poor_fit`` (check its overlays).
         prior: the population prior over the log scales and the weight of a known height
             (:class:`torchfit.fit.prior.PriorOptions`; ``subject.yaml`` gives the facts).
-        proportion_evidence: a fitted segment whose ratio to the height is outside the 1st–99th
-            percentiles of ANSUR II (:mod:`torchfit.pipeline.checks`) stays ``ok`` only if
-            pinning it at the nearer percentile and refitting raises the images' cost by at
-            least this much (``Σ ρ(r²)``; 1 is every contour pixel of one posture one pixel
-            further, :mod:`torchfit.fit.evidence`); otherwise the fit is ``poor_fit``.
-        evidence_iterations: the solver iterations of that refit.
     """
 
     stages: tuple[StageOptions, ...] = field(default_factory=_default_stages)
@@ -201,8 +195,6 @@ class FitConfig(FitOptions):
     batch_size: int = 4
     max_contour_rms_px: float = 15.0
     prior: PriorOptions = field(default_factory=PriorOptions)
-    proportion_evidence: float = 5.0
-    evidence_iterations: int = 20
 
 
 @dataclass(frozen=True)

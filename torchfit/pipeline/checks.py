@@ -13,8 +13,8 @@ ratio to the height among the 6068 soldiers of ANSUR II. Two checks read it:
 - **The population range** (:func:`population_ranges`, :func:`proportion_outliers`): the 1st–99th
   percentiles, in the model's own definitions. A ``same`` row is read as it is; a ``template``
   row relative to its geometric mean, with the template's own ratio as the population's mean
-  (the convention of the prior, ``torchfit.fit.prior``). A fit outside it stands only where
-  the images clearly show it (:mod:`torchfit.fit.evidence`, ``fit.proportion_evidence``).
+  (the convention of the prior, ``torchfit.fit.prior``). A fit outside it is ``poor_fit``: its
+  measurements are reported, and the message names the ratio and the percentile.
 """
 
 from __future__ import annotations

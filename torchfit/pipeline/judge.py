@@ -29,7 +29,7 @@ def judge(
         some posture or when the stage records carry ``flags`` (a posture that disagreed
         with the others and was down-weighted, proportions far from human, scales on their upper
         bounds; see :mod:`torchfit.pipeline.stages`); ``OK`` otherwise (the last stage's
-        solver message, then its ``notes``: unusual proportions the images show).
+        solver message).
     """
     failed = any(s.status in FAILED_SOLVER_STATUS for s in stages) or not math.isfinite(
         stages[-1].cost
@@ -46,4 +46,4 @@ def judge(
     flags = [f for s in stages for f in s.flags]
     if flags:
         return SubjectStatus.POOR_FIT, "; ".join(flags)
-    return SubjectStatus.OK, "; ".join([message, *stages[-1].notes])
+    return SubjectStatus.OK, message

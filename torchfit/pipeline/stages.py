@@ -6,17 +6,11 @@ others is down-weighted (``fit.pose_outlier_weight``) and the last stage runs on
 (``<name>_reweighted``) for the subjects with such a posture only. At the end, the down-weighted
 postures, implausible body proportions (:mod:`torchfit.pipeline.checks`) and scales on their
 upper bound become the ``flags`` of the subject's last stage record, which the judge reads.
-
-A proportion outside the population's 1st–99th percentiles (but within the hard limits) is a
-flag unless the images clearly show it: pinning it at the range's nearer end must raise the
-image cost by at least ``fit.proportion_evidence`` (:func:`torchfit.fit.evidence.pinning_cost`).
-Where they do, the outlier becomes a ``note`` of the record instead, with that cost.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 
@@ -24,11 +18,9 @@ import torch
 
 from torchfit.body.measure import measure_model
 from torchfit.config.schema import Config
-from torchfit.fit.evidence import pinning_cost
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.fit.stages import pose_contour_rms, pose_outliers, solve_stage
 from torchfit.pipeline.checks import (
-    Outlier,
     bound_flags,
     population_ranges,
     proportion_flags,
@@ -49,9 +41,7 @@ class StageRecord:
     """One subject's outcome of one stage (a row of ``params.json["stages"]``).
 
     ``flags`` (last stage only): what makes the fit doubtful though the solver converged
-    (down-weighted postures, proportions, scales on bounds); ``notes`` (last stage only):
-    what is unusual but shown by the images (a proportion outside the population's range);
-    each written only when not empty.
+    (down-weighted postures, proportions, scales on bounds); written only when not empty.
     """
 
     stage: str
@@ -60,14 +50,12 @@ class StageRecord:
     cost: float
     iterations: int
     flags: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """The params.json form."""
         out = asdict(self)
-        for key in ("flags", "notes"):
-            if not out[key]:
-                del out[key]
+        if not self.flags:
+            del out["flags"]
         return out
 
 
@@ -169,10 +157,9 @@ def run_stages(
             )
             x = x.index_copy(0, torch.tensor(rerun, device=x.device), x_sub)
             _reweight(fit, x, config, downweighted, names)
-    flags, notes = _final_flags(fit, x, config, downweighted)
-    for i, (f, n) in enumerate(zip(flags, notes, strict=True)):
+    flags = _final_flags(fit, x, config, downweighted)
+    for i, f in enumerate(flags):
         records[i][-1].flags = f
-        records[i][-1].notes = n
     fit.pose_weights.fill_(1.0)
     return x, records
 
@@ -271,9 +258,8 @@ def _reweight(
 
 def _final_flags(
     fit: SilhouetteFit, x: torch.Tensor, config: Config, downweighted: list[dict[int, str]]
-) -> tuple[list[list[str]], list[list[str]]]:
-    """Per subject, what makes its fit doubtful and what is unusual but shown (see the module
-    docstring)."""
+) -> list[list[str]]:
+    """Per subject, what makes its fit doubtful (see the module docstring)."""
     with torch.no_grad():
         scales = fit.model.expand_scales(fit.layout.group_scales(x))
         measures = measure_model(fit.model, scales)
@@ -281,23 +267,15 @@ def _final_flags(
     free = [c for c in cols if float(fit.lower[c]) < float(fit.upper[c])]
     names = [fit.layout.names[c].removeprefix("scale:") for c in free]
     ranges = population_ranges(_template_ratios(fit))
-    flags, notes = [], []
+    out = []
     for i in range(x.shape[0]):
         values = {k: float(v[i]) for k, v in measures.items()}
+        flags = [downweighted[i][j] for j in sorted(downweighted[i])]
         hard = proportion_flags(values)
-        flags.append([downweighted[i][j] for j in sorted(downweighted[i])] + hard)
-        flags[i] += bound_flags([float(x[i, c]) for c in free], names, fit.scale_bounds)
-        notes.append([])
-        outliers = [] if hard else proportion_outliers(values, ranges)
-        if outliers:
-            shown = _shown(fit, x, i, outliers, config)
-            for outlier, delta in zip(outliers, shown, strict=True):
-                text = f"{outlier.describe()}; pinning it there costs the images {delta:.2f}"
-                if delta >= config.fit.proportion_evidence:
-                    notes[i].append(f"{text} (the images show it)")
-                else:
-                    flags[i].append(f"{text} (< {config.fit.proportion_evidence}: not shown)")
-    return flags, notes
+        flags += hard or [o.describe() for o in proportion_outliers(values, ranges)]
+        flags += bound_flags([float(x[i, c]) for c in free], names, fit.scale_bounds)
+        out.append(flags)
+    return out
 
 
 def _template_ratios(fit: SilhouetteFit) -> dict[str, float]:
@@ -307,31 +285,3 @@ def _template_ratios(fit: SilhouetteFit) -> dict[str, float]:
         m = measure_model(fit.model, fit.model.expand_scales(fit.layout.group_scales(start)))
     height = float(m["height_m"][0])
     return {k: float(v[0]) / height for k, v in m.items()}
-
-
-def _shown(
-    fit: SilhouetteFit, x: torch.Tensor, i: int, outliers: list[Outlier], config: Config
-) -> list[float]:
-    """What the images of subject ``i`` pay when each outlying ratio is pinned at its bound
-    (:func:`torchfit.fit.evidence.pinning_cost`: one row per outlier and a control row, the
-    images' residuals alone)."""
-    n = len(outliers)
-    # the images alone: with the prior (or a known height) in the refit, a pin away from the
-    # prior's pull lets the images fit better at the prior's expense
-    sub = SilhouetteFit.subset(fit, [i] * (n + 1))
-    keys = [o.key for o in outliers] + ["height_m"]
-
-    def ratio(full: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        m = measure_model(sub.model, sub.model.expand_scales(sub.layout.group_scales(full)))
-        every = torch.stack([m[k] / m["height_m"] for k in keys], dim=1)
-        return every.gather(1, rows[:, None])[:, 0]
-
-    target = torch.tensor([o.bound for o in outliers] + [math.nan], **sub.kw)
-    options = config.solver.lm_options(config.fit.evidence_iterations)
-    cost, reached = pinning_cost(
-        sub, x[i : i + 1].expand(n + 1, -1), config.fit.stages[-1], ratio, target, options
-    )
-    rise = (cost[:n] - cost[n]).tolist()
-    for o, d, q in zip(outliers, rise, reached.tolist(), strict=False):
-        log.info("%s: pinned at %.4f (reached %.4f), images pay %.3g", o.describe(), o.bound, q, d)
-    return rise
