@@ -24,16 +24,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torchfit.errors import TorchfitError  # noqa: E402
+from torchfit.measurements import MEASUREMENT_KEYS  # noqa: E402
 
-KEYS = (
-    "height_m",
-    "arm_span_m",
-    "lower_leg_m",
-    "thigh_m",
-    "upper_arm_m",
-    "forearm_m",
-    "shoulder_width_m",
-)
+#: the first paper's seven measurements (design.md section 5)
+KEYS = MEASUREMENT_KEYS[:7]
 
 
 def _measurements(runs: list[Path], subject: str) -> dict[str, float]:
