@@ -74,8 +74,10 @@ def test_outliers_name_the_nearer_end_of_the_range():
     out = proportion_outliers(body, ranges)
     assert [(o.key, o.bound) for o in out] == [("thigh_m", 0.27), ("forearm_m", 0.12)]
     assert out[0].ratio == pytest.approx(0.28)
-    assert out[0].describe().startswith("thigh / height 0.280 above the 99th percentile 0.270")
-    assert out[1].describe().startswith("forearm / height 0.115 below the 1st percentile 0.120")
+    assert out[0].describe().startswith("thigh / height 0.2800 above the 99th percentile 0.2700")
+    assert "(+3.7 %;" in out[0].describe()
+    assert out[1].describe().startswith("forearm / height 0.1150 below the 1st percentile 0.1200")
+    assert "(-4.2 %;" in out[1].describe()
     assert proportion_outliers({**body, "thigh_m": 0.5, "forearm_m": 0.3}, ranges) == []
 
 

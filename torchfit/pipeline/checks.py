@@ -72,11 +72,12 @@ class Outlier:
     bound: float
 
     def describe(self) -> str:
-        """E.g. ``"thigh / height 0.290 above the 99th percentile 0.268 (...)"``."""
+        """E.g. ``"thigh / height 0.2900 above the 99th percentile 0.2680 (+8.2 %; ...)"``."""
         side = "above the 99th" if self.ratio > self.bound else "below the 1st"
+        excess = 100 * (self.ratio / self.bound - 1)
         return (
-            f"{self.key[:-2]} / height {self.ratio:.3f} {side} percentile {self.bound:.3f} "
-            "(ANSUR II, model definitions)"
+            f"{self.key[:-2]} / height {self.ratio:.4f} {side} percentile {self.bound:.4f} "
+            f"({excess:+.1f} %; ANSUR II, model definitions)"
         )
 
 
