@@ -16,7 +16,9 @@ import torch
 from torchfit.body.measure import measure_model
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import POSTURES
+from torchfit.image import SegmentationOptions, fit_background, segment
 from torchfit.io.camera import save_camera
+from torchfit.io.images import load_frames
 from torchfit.viz.preview import nominal_view, render_pose_preview
 
 SIZE = (360, 288)
@@ -60,3 +62,15 @@ def make_template_subject(
     truth = {k: float(v[0]) for k, v in measure_model(model, scales).items()}
     (folder / "truth.json").write_text(json.dumps(truth))
     return truth
+
+
+def segment_subjects(subjects, **options) -> torch.Tensor:
+    """(B, 6, H, W) silhouettes of loaded subjects by the colour test (``gamma`` 0.05, no shadow
+    test) with the other :class:`~torchfit.image.SegmentationOptions` given."""
+    cfg = SegmentationOptions(gamma=0.05, shadow_test=False, **options)
+    masks = []
+    for s in subjects:
+        background, _ = load_frames(s.background)
+        images, _ = load_frames(s.poses)
+        masks.append(segment(images, fit_background(background, cfg), cfg).masks[:, 0])
+    return torch.stack(masks)

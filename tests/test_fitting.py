@@ -10,7 +10,7 @@ import json
 
 import pytest
 import torch
-from template_subjects import make_template_subject
+from template_subjects import make_template_subject, segment_subjects
 
 from torchfit.body.measure import measure_model
 from torchfit.camera import stack_cameras
@@ -23,9 +23,7 @@ from torchfit.fit import (
     solve_stage,
 )
 from torchfit.fit.baseline import minpack_stage, rendered_residual
-from torchfit.image import SegmentationOptions, fit_background, segment
 from torchfit.io.dataset import load_subject
-from torchfit.io.images import load_frames
 from torchfit.solver import LMOptions
 
 
@@ -41,13 +39,7 @@ def subjects(tmp_path_factory, model):
 def segmented(subjects) -> torch.Tensor:
     """(B, 6, H, W) silhouettes of the subjects (the colour test alone, no outline test: these
     tests are about the fit, on the silhouettes they were written for)."""
-    cfg = SegmentationOptions(gamma=0.05, shadow_test=False, edge_width=0)
-    masks = []
-    for s in subjects:
-        background, _ = load_frames(s.background)
-        images, _ = load_frames(s.poses)
-        masks.append(segment(images, fit_background(background, cfg), cfg).masks[:, 0])
-    return torch.stack(masks)
+    return segment_subjects(subjects, edge_width=0)
 
 
 def problem(model, subjects, fit_config=None):

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from template_subjects import make_template_subject
+from template_subjects import make_template_subject, segment_subjects
 
 from torchfit.body.measure import measure_model
 from torchfit.camera import stack_cameras
@@ -28,9 +28,7 @@ from torchfit.fit.prior import (
     load_prior,
     neutral_height,
 )
-from torchfit.image import SegmentationOptions, fit_background, segment
 from torchfit.io.dataset import load_subject
-from torchfit.io.images import load_frames
 from torchfit.solver import LMOptions
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -40,18 +38,10 @@ WEIGHT = float(BENCHMARK["weight"])
 ENTRIES = tuple(BENCHMARK.get("entries") or ()) or None
 
 
-def _masks(subjects) -> torch.Tensor:
-    cfg = SegmentationOptions(gamma=0.05, shadow_test=False)
-    out = []
-    for s in subjects:
-        background, _ = load_frames(s.background)
-        images, _ = load_frames(s.poses)
-        out.append(segment(images, fit_background(background, cfg), cfg).masks[:, 0])
-    return torch.stack(out)
-
-
 def _problem(model, subjects, facts=None, weight=WEIGHT, tolerance=0.005, entries=None):
-    person = person_data_from_masks(_masks(subjects), stack_cameras([s.camera for s in subjects]))
+    person = person_data_from_masks(
+        segment_subjects(subjects), stack_cameras([s.camera for s in subjects])
+    )
     options = PriorOptions(weight=weight, height_tolerance_m=tolerance, entries=entries)
     return PriorFit(model, person, prior=load_prior("ansur2"), prior_options=options, facts=facts)
 
