@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections import deque
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
@@ -176,7 +177,8 @@ def run_live(
     empty: list[np.ndarray] = []
     model_bg = None
     target, held, captured = 1, 0, []
-    hold: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame number, frame, mask)
+    # the last frames of the current hold, (frame number, frame, mask): only these can be combined
+    hold: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=options.hold_frames)
     record: dict[str, dict] = {}
     save_camera(camera, out / "camera.yaml")
     number = -1
@@ -209,8 +211,12 @@ def run_live(
             image = torch.from_numpy(frame).permute(2, 0, 1)[None].float() / 255
             mask = segment(image, model_bg, segmentation).masks[0, 0].numpy()
             score = match_score(mask, templates[target - 1], height_m is None)
-            held = held + 1 if score >= options.min_score else 0
-            hold = hold + [(number, frame, mask)] if held else []
+            if score >= options.min_score:
+                held += 1
+                hold.append((number, frame, mask))
+            else:
+                held = 0
+                hold.clear()
             name = POSTURE_NAMES[target - 1]
             status.update(score=score, message=f"strike posture {target}: {name}")
             server.publish(
@@ -233,7 +239,8 @@ def run_live(
                 }
                 write_atomic(out / "capture.json", json.dumps({"postures": record}, indent=1))
                 captured.append(target)
-                target, held, hold = target + 1, 0, []
+                target, held = target + 1, 0
+                hold.clear()
         if realtime:
             time.sleep(1.0 / fps)
     video.release()
