@@ -1,18 +1,21 @@
 """Tracking speed: one sequence against B sequences advanced together (one frame per row).
 
     python benchmarks/bench_track.py --model RUN/SUBJECT --sequence SEQ_DIR \
-        [--frames 8] [--batch 16] [--repeats 3]
+        [--frames 8] [--batch 16] [--repeats 3] [--baseline jacobian=batched,ftol=1e-8,xtol=1e-8]
 
 The B rows are the same sequence (the per-row work is the same, so the ratio is the batching's
 gain alone). Silhouettes are segmented once beforehand and timed separately (per image); the
 tracker's time per frame per sequence is measured for B = 1 and B = ``--batch``, interleaved
 ``--repeats`` times (medians quoted), as wall time and as this process's CPU time (the latter
 holds better on a shared machine). The first frame (its start hypotheses) is not timed.
+``--baseline`` also times the tracker with those options changed (``configs/track.yaml``'s
+``track:`` keys), interleaved with the defaults in the same process.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import statistics
 import time
@@ -34,8 +37,19 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=8)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--baseline", default=None, help="KEY=VALUE,... tracker options to compare")
     args = p.parse_args()
     cfg = TrackConfig()
+    variants = {"defaults": cfg.track}
+    if args.baseline:
+        fields = {f.name: f.type for f in dataclasses.fields(cfg.track)}
+        changes = {}
+        for item in args.baseline.split(","):
+            key, value = item.split("=", 1)
+            default = getattr(cfg.track, key)
+            changes[key] = type(default)(value) if not isinstance(default, str) else value
+        assert set(changes) <= set(fields), changes
+        variants["baseline"] = dataclasses.replace(cfg.track, **changes)
     template, scales = load_fitted(args.model)
     model = BodyModel(template)
     sc = torch.tensor([scales[s] for s in model.template.segments], dtype=torch.float64)
@@ -51,43 +65,44 @@ def main() -> None:
     layout = PoseLayout(model, cfg.track)
     cam1 = seq.camera.to(dtype=model.dtype)
     x0 = _start(model, sc[None], cam1, masks[0][None], layout, cfg.track)
-    results: dict[int, list[float]] = {1: [], args.batch: []}
-    cpu: dict[int, list[float]] = {1: [], args.batch: []}
+    sizes = (1, args.batch)
+    wall = {(v, b): [] for v in variants for b in sizes}
+    cpu = {(v, b): [] for v in variants for b in sizes}
     for _ in range(args.repeats):
-        for b in (1, args.batch):
-            cams = stack_cameras([seq.camera] * b).to(dtype=model.dtype)
-            frames = (m[None].expand(b, -1, -1) for m in masks[1:])
-            t0, c0 = time.perf_counter(), time.process_time()
-            track(
-                model,
-                sc[None].expand(b, -1, -1).contiguous(),
-                cams,
-                frames,
-                x0.expand(b, -1),
-                cfg.track,
-            )
-            results[b].append(1000 * (time.perf_counter() - t0) / (args.frames * b))
-            cpu[b].append(1000 * (time.process_time() - c0) / (args.frames * b))
-    one = statistics.median(results[1])
-    many = statistics.median(results[args.batch])
-    print(
-        json.dumps(
-            {
-                "segmentation_ms_per_image": round(seg_ms, 1),
-                "track_ms_per_frame_B1": round(one, 1),
-                f"track_ms_per_frame_per_sequence_B{args.batch}": round(many, 1),
-                "fps_ratio": round(one / many, 2),
-                "cpu_ms_per_frame_B1": round(statistics.median(cpu[1]), 1),
-                f"cpu_ms_per_frame_per_sequence_B{args.batch}": round(
-                    statistics.median(cpu[args.batch]), 1
-                ),
-                "runs_ms": {str(k): [round(v, 1) for v in vs] for k, vs in results.items()},
-                "threads": torch.get_num_threads(),
-            },
-            indent=1,
+        for name, options in variants.items():
+            for b in sizes:
+                cams = stack_cameras([seq.camera] * b).to(dtype=model.dtype)
+                frames = (m[None].expand(b, -1, -1) for m in masks[1:])
+                t0, c0 = time.perf_counter(), time.process_time()
+                track(
+                    model,
+                    sc[None].expand(b, -1, -1).contiguous(),
+                    cams,
+                    frames,
+                    x0.expand(b, -1),
+                    options,
+                )
+                wall[name, b].append(1000 * (time.perf_counter() - t0) / (args.frames * b))
+                cpu[name, b].append(1000 * (time.process_time() - c0) / (args.frames * b))
+    report = {"segmentation_ms_per_image": round(seg_ms, 1), "threads": torch.get_num_threads()}
+    for name in variants:
+        one = statistics.median(wall[name, 1])
+        many = statistics.median(wall[name, args.batch])
+        report[name] = {
+            "track_ms_per_frame_B1": round(one, 1),
+            f"track_ms_per_frame_per_sequence_B{args.batch}": round(many, 1),
+            "fps_ratio": round(one / many, 2),
+            "cpu_ms_per_frame_B1": round(statistics.median(cpu[name, 1]), 1),
+            f"cpu_ms_per_frame_per_sequence_B{args.batch}": round(
+                statistics.median(cpu[name, args.batch]), 1
+            ),
+            "runs_ms": {str(b): [round(v, 1) for v in wall[name, b]] for b in sizes},
+        }
+    if "baseline" in variants:
+        report["speed_up_B1"] = round(
+            statistics.median(wall["baseline", 1]) / statistics.median(wall["defaults", 1]), 2
         )
-    )
-
+    print(json.dumps(report, indent=1))
 
 if __name__ == "__main__":
     main()

@@ -196,3 +196,41 @@ def test_a_video_tracks_like_its_frames(model, camera, tmp_path):
     b = (outs[1] / "track.csv").read_text().splitlines()
     assert len(a) == len(b) == 4
     assert [r.split(",")[5] for r in a] == [r.split(",")[5] for r in b]  # same contour RMS
+
+
+def test_analytic_frame_jacobian_matches_central_differences(model, camera):
+    from torchfit.fit.model_contour import EdgeSampler, select_contour
+    from torchfit.track.frame import _FrameResidual, _pixels
+
+    opts = TrackOptions()
+    layout = PoseLayout(model, opts)
+    truth = _pose(model, layout, camera, {"l_shoulder_abduct": 0.8, "r_knee_flexion": 0.5})[None]
+    person = person_data_from_masks(_masks(model, camera, truth)[:, None], camera, stride=3)
+    g = torch.Generator().manual_seed(7)
+    x = layout.clip(truth + 0.03 * torch.randn(truth.shape, generator=g, dtype=torch.float64))
+    x[:, 3:6] += 0.2  # a root rotation well away from zero
+    scales = 1 + 0.1 * torch.rand(1, model.num_segments, 3, generator=g, dtype=torch.float64)
+    sampler = EdgeSampler(model.faces, opts.samples_per_edge)
+    pix, _ = _pixels(model, scales, camera, x, None)
+    sel = select_contour(sampler, pix, person.contours[0], person.valid[0], SIZE, 1.0)
+    problem = _FrameResidual(model, scales, person, layout, truth, sampler, sel)
+    rows = torch.arange(1)
+    jac, r0 = problem.analytic_jacobian(x, rows)
+    r, mask = problem(x, rows)
+    torch.testing.assert_close(r0, r, atol=1e-12, rtol=0)
+    # one-sided differences on both sides: e_P's nearest point on an edge and the bilinear
+    # distance map have kinks, where the derivative is one side's (a central difference
+    # straddling one is neither)
+    h = 1e-7
+    ahead, behind = [], []
+    for i in range(x.shape[1]):
+        step = torch.zeros_like(x)
+        step[:, i] = h
+        ahead.append((problem(x + step, rows)[0] - r) / h)
+        behind.append((r - problem(x - step, rows)[0]) / h)
+    keep = mask[..., None].expand_as(jac)
+    err = torch.minimum(
+        (jac - torch.stack(ahead, -1)).abs(), (jac - torch.stack(behind, -1)).abs()
+    )[keep]
+    assert jac[keep].abs().max() > 1.0  # the contour terms do depend on the pose
+    assert err.max() < 1e-4 * (1 + jac[keep].abs().max()), err.max()

@@ -156,6 +156,10 @@ class SkeletonChain(torch.nn.Module):
         self.register_buffer("frame_indices", chain.get_frame_indices(*frames).clone(), False)
         self.parents = np.asarray(parents)
         self.register_buffer("offsets", self._segment_offsets(source), persistent=False)
+        dof_frames, pivots, moves = self._dof_structure(frames, source)
+        self.register_buffer("dof_frames", dof_frames, persistent=False)
+        self.register_buffer("dof_pivot", pivots, persistent=False)
+        self.register_buffer("dof_moves", moves, persistent=False)
 
     @property
     def num_dofs(self) -> int:
@@ -178,6 +182,59 @@ class SkeletonChain(torch.nn.Module):
             self.chain, joint_angles, lift(self.axes, dual), lift(self.static_offsets, dual)
         )
         return all_t[self.frame_indices].transpose(0, 1)
+
+    def _dof_structure(
+        self, frames: list[str], source: str
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Where each DOF sits in the tree: its frame, its pivot segment, what it moves.
+
+        Returns:
+            ``dof_frames`` (Q,) the chain frame index whose joint is the DOF; ``dof_pivot``
+            (Q,) the segment whose origin the DOF turns about (the first segment frame at or
+            below it: a DOF's frame carries no translation of its own, see
+            :meth:`_segment_offsets`); ``dof_moves`` (Q, S) bool, DOF k turns segment s.
+        """
+        segment_of = {name: s for s, name in enumerate(frames)}
+        dof = {name: k for k, name in enumerate(self.dof_names)}
+        q, s_count = len(self.dof_names), len(frames)
+        dof_frames = torch.full((q,), -1, dtype=torch.long)
+        pivots = torch.full((q,), -1, dtype=torch.long)
+        moves = torch.zeros(q, s_count, dtype=torch.bool)
+        pending: list[int] = []  # DOFs on the path whose pivot segment is not reached yet
+        stack = [(self.chain.find_frame(frames[0]), [], [])]
+        while stack:
+            frame, above, open_dofs = stack.pop()
+            here, waiting = list(above), list(open_dofs)
+            k = dof.get(frame.joint.name) if frame.joint.joint_type != "fixed" else None
+            if k is not None:
+                dof_frames[k] = int(self.chain.get_frame_indices(frame.name)[0])
+                here.append(k)
+                waiting.append(k)
+            s = segment_of.get(frame.name)
+            if s is not None:
+                moves[here, s] = True
+                pivots[waiting] = s
+                waiting = []
+            pending.extend(waiting if not frame.children else [])
+            for child in frame.children:
+                stack.append((child, here, waiting))
+        missing = [self.dof_names[k] for k in range(q) if int(pivots[k]) < 0]
+        if missing or pending:
+            raise ModelError(
+                f"{source}: joint DOFs {missing or pending} do not lead to a segment below "
+                "the root segment"
+            )
+        return dof_frames, pivots, moves
+
+    def frame_rotations(self, joint_angles: torch.Tensor) -> torch.Tensor:
+        """(B, F, 3, 3) rotation of every chain frame (segments and DOF frames) in the root
+        frame."""
+        check_shape("joint_angles", joint_angles, ("B", self.num_dofs))
+        dual = is_dual(joint_angles)
+        all_t = _forward_kinematics(
+            self.chain, joint_angles, lift(self.axes, dual), lift(self.static_offsets, dual)
+        )
+        return all_t[..., :3, :3].transpose(0, 1)
 
     def _segment_offsets(self, source: str) -> torch.Tensor:
         """(S, 3) origin of each segment in its parent's frame; checks it is pose-independent."""

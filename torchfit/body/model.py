@@ -47,6 +47,22 @@ def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     return eye + a * k + b * (k @ k)
 
 
+def _left_jacobian(rotvec: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) left Jacobian of SO(3) at axis-angles (B, 3): ``I + b K + c K²`` with
+    ``b = (1 − cos θ)/θ²``, ``c = (θ − sin θ)/θ³`` (Taylor series near 0)."""
+    theta2 = (rotvec * rotvec).sum(-1)[:, None, None]
+    small = theta2 < 1e-12
+    safe2 = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = safe2.sqrt()
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / safe2)
+    c = torch.where(small, 1 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (safe2 * theta))
+    x, y, z = rotvec.unbind(-1)
+    zero = torch.zeros_like(x)
+    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(-1, 3, 3)
+    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(k)
+    return eye + b * k + c * (k @ k)
+
+
 @dataclass
 class BodyOutput:
     """A posed body.
@@ -226,7 +242,6 @@ class BodyModel(torch.nn.Module):
         check_shape("joint_angles", joint_angles, (b, self.num_dofs))
         check_shape("root_translation", root_translation, (b, 3))
         dual = any(is_dual(t) for t in (scales, joint_angles, root_translation, root_rotation))
-        offsets = lift(self.offsets, dual)
         if root_rotation.dim() == 3:
             check_shape("root_rotation", root_rotation, (b, 3, 3))
             rot_root = root_rotation
@@ -234,7 +249,18 @@ class BodyModel(torch.nn.Module):
             check_shape("root_rotation", root_rotation, (b, 3))
             rot_root = axis_angle_to_matrix(root_rotation)  # (B, 3, 3)
         rot = rot_root[:, None] @ self.chain.rotations(joint_angles)  # (B, S, 3, 3)
+        return self._posed(scales, rot, root_translation, vertex_index, dual)
 
+    def _posed(
+        self,
+        scales: torch.Tensor,
+        rot: torch.Tensor,
+        root_translation: torch.Tensor,
+        vertex_index: torch.Tensor | None,
+        dual: bool,
+    ) -> BodyOutput:
+        """Origins and vertices from the segments' world rotations (B, S, 3, 3)."""
+        offsets = lift(self.offsets, dual)
         # positions, level by level: p_c = p_parent + R_parent (σ_parent ⊙ o_c)
         origins = [None] * self.num_segments
         origins[0] = root_translation
@@ -254,6 +280,56 @@ class BodyModel(torch.nn.Module):
         posed = torch.einsum("bsij,bsvj->bsvi", rot, local) + origins_t[:, :, None, :]
         vertices = posed.reshape(posed.shape[0], -1, 3)[:, self._flat_index]
         return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
+
+    def pose_jacobian(
+        self,
+        scales: torch.Tensor,
+        joint_angles: torch.Tensor,
+        root_translation: torch.Tensor,
+        root_rotation: torch.Tensor,
+        vertex_index: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posed vertices and their derivatives w.r.t. the pose, in closed form.
+
+        The segments are rigid, so a joint DOF k turns every point it moves about its world
+        axis ``a_k`` through its pivot ``c_k`` (the origin of the segment it ends in):
+        ``∂p/∂q_k = a_k × (p − c_k)``. The root translation moves every point by itself, and
+        the root's axis-angle ``r`` turns them about the root origin ``t``:
+        ``∂p/∂r = −[p − t]× J_l(r)``, with ``J_l`` the left Jacobian of SO(3)
+        (``Exp(r + δ) ≈ Exp(J_l(r) δ) Exp(r)``). One forward pass instead of one per
+        parameter (forward differences) or per tangent direction (forward-mode AD).
+
+        Args:
+            scales, joint_angles, root_translation: as :meth:`forward`.
+            root_rotation: (B, 3) axis-angle (the derivative is w.r.t. it).
+            vertex_index: (K,) template vertices to pose.
+
+        Returns:
+            (B, K, 3) vertices (as :meth:`forward` gives them) and (B, K, 3, 6 + Q) their
+            Jacobian w.r.t. ``[root_translation, root_rotation, joint_angles]``.
+        """
+        check_shape("scales", scales, ("B", self.num_segments, 3))
+        check_shape("root_rotation", root_rotation, ("B", 3))
+        chain = self.chain
+        rot_root = axis_angle_to_matrix(root_rotation)
+        frames = chain.frame_rotations(joint_angles)  # (B, F, 3, 3), one kinematics pass
+        rot = rot_root[:, None] @ frames[:, chain.frame_indices]
+        out = self._posed(scales, rot, root_translation, vertex_index, False)
+        p = out.vertices  # (B, K, 3)
+        b, k = p.shape[:2]
+        dof_rot = rot_root[:, None] @ frames[:, chain.dof_frames]  # (B, Q, 3, 3)
+        axes = (dof_rot @ chain.axes[..., None])[..., 0]  # (B, Q, 3) world axes
+        pivots = out.origins[:, chain.dof_pivot]  # (B, Q, 3)
+        seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
+        moves = chain.dof_moves[:, seg].T.to(p.dtype)  # (K, Q)
+        arm = p[:, :, None, :] - pivots[:, None]  # (B, K, Q, 3)
+        d_q = torch.linalg.cross(axes[:, None].expand_as(arm), arm) * moves[None, :, :, None]
+        d_t = torch.eye(3, dtype=p.dtype, device=p.device).expand(b, k, 3, 3)
+        left = _left_jacobian(root_rotation)  # (B, 3, 3)
+        rel = (p - root_translation[:, None]).unsqueeze(-2).expand(b, k, 3, 3)
+        d_r = torch.linalg.cross(left.transpose(1, 2)[:, None].expand_as(rel), rel)  # rows: columns
+        jac = torch.cat([d_t, d_r.transpose(-1, -2), d_q.transpose(-1, -2)], dim=-1)
+        return p, jac
 
     def joint_positions(self, out: BodyOutput) -> dict[str, torch.Tensor]:
         """Named joint centres (design.md section 3 names) of a posed body.

@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.autograd.forward_ad as fwad
 
 from torchfit.body.model import BodyModel
 from torchfit.camera import Camera, project_points
@@ -52,9 +53,13 @@ class TrackOptions:
         floor_weight: pull of the lowest sole point towards the floor (z = 0), pixels per
             metre (a soft contact: someone jumping leaves the floor at that cost).
         contour_stride: use every n-th person contour pixel in e_P.
+        ftol, xtol: the solver's stopping tolerances (:class:`torchfit.solver.LMOptions`):
+            a row stops before ``iterations`` once its relative cost reduction or its
+            relative step falls below them.
         min_diag: floor of the solver's scaling (:attr:`torchfit.solver.LMOptions.min_diag`).
-        jacobian: ``batched`` (forward differences, all the perturbed rows in one model
-            call: the fastest on the CPU) or a solver Jacobian (``forward``, ``numeric``).
+        jacobian: ``analytic`` (the pose derivatives in closed form, one model call per
+            Jacobian: the fastest), ``batched`` (forward differences, all the perturbed rows in
+            one model call) or a solver Jacobian (``forward``, ``numeric``).
     """
 
     iterations: int = 8
@@ -69,7 +74,9 @@ class TrackOptions:
     floor_weight: float = 100.0
     min_diag: float = 1e-6
     contour_stride: int = 3
-    jacobian: str = "batched"
+    jacobian: str = "analytic"
+    ftol: float = 1e-3
+    xtol: float = 1e-3
 
 
 class PoseLayout:
@@ -119,6 +126,23 @@ class FrameResult:
     iterations: torch.Tensor
 
 
+def _project_with_jacobian(world: torch.Tensor, d_world: torch.Tensor, camera: Camera):
+    """Pixels (N, K, 2) of world points (N, K, 3) and their Jacobian (N, K, 2, P) from the
+    points' (N, K, 3, P): the projection's derivative by forward mode, the three world axes
+    folded into the batch."""
+    n, k = world.shape[:2]
+    tangent = torch.zeros(3, n, k, 3, dtype=world.dtype, device=world.device)
+    for c in range(3):
+        tangent[c, ..., c] = 1.0
+    rows = torch.arange(n, device=world.device).repeat(3)
+    with fwad.dual_level():
+        dual = fwad.make_dual(world.repeat(3, 1, 1), tangent.reshape(3 * n, k, 3))
+        primal, tan = fwad.unpack_dual(project_points(dual, camera[rows]))
+    d_pix = tan.reshape(3, n, k, 2)  # d_pix[c]: derivative along world axis c
+    prod = d_pix.permute(1, 2, 3, 0)[..., None] * d_world[:, :, None]  # (N, K, 2, 3, P)
+    return primal[:n], prod[:, :, :, 0] + prod[:, :, :, 1] + prod[:, :, :, 2]
+
+
 def _pixels(model, scales, camera, x, vertex_index):
     t, r, q = PoseLayout.split(x)
     out = model(scales, q, t, r, vertex_index=vertex_index)
@@ -150,41 +174,87 @@ class _FrameResidual:
         self.n_model = selection.sample_valid.sum(1).clamp_min(1)
         self.n_person = self.valid.sum(1).clamp_min(1)
 
+    def _endpoints(self, p: torch.Tensor, index: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Each residual entry's own copy of its edge endpoints' pixels (N, n, 2)."""
+        g = lambda t, i: torch.gather(t, 1, i[..., None].expand(-1, -1, t.shape[-1]))  # noqa: E731
+        return {
+            "pa": g(p, self.pa[index]),
+            "pb": g(p, self.pb[index]),
+            "ma": g(p, self.ma[index]),
+            "mb": g(p, self.mb[index]),
+        }
+
+    def _contour_terms(
+        self, ends: dict[str, torch.Tensor], index: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """e_P (N, C) and e_M (N, n_m) from the endpoint pixels (padding is zero)."""
+        dtype = ends["pa"].dtype
+        t = self.mt[index][..., None].to(dtype)
+        points = ends["ma"] * (1 - t) + ends["mb"] * t
+        d_m = sample_distance_map(self.dist, points, rows=index)
+        e_m = torch.where(self.sample_valid[index], d_m, torch.zeros_like(d_m))
+        e_m = e_m / self.n_model[index, None].to(dtype).sqrt()
+        d_p = point_to_edge_distance(
+            self.contours[index], ends["pa"], ends["pb"], self.pt[index], self.half
+        )
+        e_p = torch.where(self.valid[index], d_p, torch.zeros_like(d_p))
+        e_p = e_p / self.n_person[index, None].to(dtype).sqrt()
+        return e_p, e_m
+
+    def _mask(self, index: torch.Tensor) -> torch.Tensor:
+        valid_p, valid_m = self.valid[index], self.sample_valid[index]
+        rest = torch.ones(valid_p.shape[0], self.layout.num_params + 1, dtype=torch.bool)
+        return torch.cat([valid_p, valid_m, rest.to(valid_p.device)], 1)
+
     def __call__(self, xr: torch.Tensor, index: torch.Tensor):
         p, world = _pixels(self.model, self.scales[index], self.camera[index], xr, self.verts)
-        g = lambda t, i: torch.gather(t, 1, i[..., None].expand(-1, -1, 2))  # noqa: E731
-        t = self.mt[index][..., None].to(xr.dtype)
-        points = g(p, self.ma[index]) * (1 - t) + g(p, self.mb[index]) * t
-        d_m = sample_distance_map(self.dist, points, rows=index)
-        valid_m = self.sample_valid[index]
-        e_m = torch.where(valid_m, d_m, torch.zeros_like(d_m))
-        e_m = e_m / self.n_model[index, None].to(xr.dtype).sqrt()
-        d_p = point_to_edge_distance(
-            self.contours[index],
-            g(p, self.pa[index]),
-            g(p, self.pb[index]),
-            self.pt[index],
-            self.half,
-        )
-        valid_p = self.valid[index]
-        e_p = torch.where(valid_p, d_p, torch.zeros_like(d_p))
-        e_p = e_p / self.n_person[index, None].to(xr.dtype).sqrt()
+        e_p, e_m = self._contour_terms(self._endpoints(p, index), index)
         e_t = self.layout.weights * (xr - self.prediction[index])
         # floor: the lowest sole point on the floor (z = 0), soft
         z = world[:, self.soles, 2] if len(self.soles) else xr[:, :1] * 0
         e_f = self.floor_weight * z.min(1, keepdim=True).values
-        mask = torch.cat(
-            [
-                valid_p,
-                valid_m,
-                torch.ones_like(e_t, dtype=torch.bool),
-                torch.ones_like(e_f, dtype=torch.bool),
-            ],
-            1,
-        )
-        return torch.cat([e_p, e_m, e_t, e_f], 1), mask
+        return torch.cat([e_p, e_m, e_t, e_f], 1), self._mask(index)
 
-    def jacobian(self, xr: torch.Tensor, index: torch.Tensor):
+    def analytic_jacobian(self, xr: torch.Tensor, index: torch.Tensor):
+        """The Jacobian in one pass: the posed contour vertices' pose derivatives in closed
+        form (:meth:`BodyModel.pose_jacobian`), through the projection by forward mode, times
+        each residual entry's derivative w.r.t. its own endpoint pixels (reverse mode)."""
+        n, p_count = xr.shape
+        t, r, q = PoseLayout.split(xr)
+        world, d_world = self.model.pose_jacobian(self.scales[index], q, t, r, self.verts)
+        pix, d_pix = _project_with_jacobian(world, d_world, self.camera[index])
+        ends = {k: v.detach().requires_grad_(True) for k, v in self._endpoints(pix, index).items()}
+        with torch.enable_grad():
+            e_p, e_m = self._contour_terms(ends, index)
+            grads = torch.autograd.grad(
+                e_p.sum() + e_m.sum(), list(ends.values()), allow_unused=True
+            )
+        local = {
+            k: g if g is not None else torch.zeros_like(ends[k])
+            for (k, g) in zip(ends, grads, strict=True)
+        }
+
+        def chain(name: str, idx: torch.Tensor) -> torch.Tensor:
+            tangents = torch.gather(d_pix, 1, idx[..., None, None].expand(-1, -1, 2, p_count))
+            prod = local[name][..., None] * tangents  # (N, n, 2, P)
+            return prod[:, :, 0] + prod[:, :, 1]
+
+        j_p = chain("pa", self.pa[index]) + chain("pb", self.pb[index])
+        j_m = chain("ma", self.ma[index]) + chain("mb", self.mb[index])
+        j_t = torch.diag_embed(self.layout.weights.to(xr).expand(n, -1))
+        e_t = self.layout.weights * (xr - self.prediction[index])
+        if len(self.soles):
+            z = world[:, self.soles, 2]
+            low = self.soles[z.argmin(1)]
+            j_f = self.floor_weight * d_world[torch.arange(n), low, 2][:, None]
+            e_f = self.floor_weight * z.min(1, keepdim=True).values
+        else:
+            j_f = torch.zeros(n, 1, p_count, dtype=xr.dtype, device=xr.device)
+            e_f = xr[:, :1] * 0
+        r0 = torch.cat([e_p.detach(), e_m.detach(), e_t, e_f], 1)
+        return torch.cat([j_p, j_m, j_t, j_f], 1), r0
+
+    def batched_jacobian(self, xr: torch.Tensor, index: torch.Tensor):
         """Forward differences, every perturbed copy of the rows in one batched call."""
         n, p = xr.shape
         h = _STEP * torch.clamp(xr.abs(), min=1.0)
@@ -202,6 +272,12 @@ class _FrameResidual:
             r, _ = self(x, torch.arange(x.shape[0], device=x.device))
         e_p = r[:, : self.contours.shape[1]]
         return (e_p * e_p).sum(1).sqrt()  # e_P already carries 1 / sqrt(|C_P|)
+
+
+_JACOBIANS = {
+    "analytic": lambda problem: problem.analytic_jacobian,
+    "batched": lambda problem: problem.batched_jacobian,
+}
 
 
 def solve_frame(
@@ -230,7 +306,13 @@ def solve_frame(
     camera: Camera = person.camera
     x = layout.clip(x0)
     iterations = torch.zeros(x.shape[0], dtype=torch.long)
-    lm = LMOptions(max_iter=options.iterations, fold_batch=False, min_diag=options.min_diag)
+    lm = LMOptions(
+        max_iter=options.iterations,
+        fold_batch=False,
+        min_diag=options.min_diag,
+        ftol=options.ftol,
+        xtol=options.xtol,
+    )
     cost = torch.zeros(x.shape[0], dtype=x.dtype)
     problem = None
     for _ in range(options.rounds):
@@ -244,7 +326,9 @@ def solve_frame(
             problem,
             x,
             lm,
-            jacobian=problem.jacobian if options.jacobian == "batched" else options.jacobian,
+            jacobian=_JACOBIANS[options.jacobian](problem)
+            if options.jacobian in _JACOBIANS
+            else options.jacobian,
             lower=layout.lower,
             upper=layout.upper,
             indexed=True,
