@@ -42,13 +42,13 @@ def main() -> None:
     cfg = TrackConfig()
     variants = {"defaults": cfg.track}
     if args.baseline:
-        fields = {f.name: f.type for f in dataclasses.fields(cfg.track)}
+        fields = {f.name for f in dataclasses.fields(cfg.track)}
         changes = {}
         for item in args.baseline.split(","):
             key, value = item.split("=", 1)
-            default = getattr(cfg.track, key)
-            changes[key] = type(default)(value) if not isinstance(default, str) else value
-        assert set(changes) <= set(fields), changes
+            if key not in fields:
+                p.error(f"--baseline: unknown tracker option {key!r}")
+            changes[key] = type(getattr(cfg.track, key))(value)
         variants["baseline"] = dataclasses.replace(cfg.track, **changes)
     template, scales = load_fitted(args.model)
     model = BodyModel(template)
