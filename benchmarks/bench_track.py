@@ -104,5 +104,6 @@ def main() -> None:
         )
     print(json.dumps(report, indent=1))
 
+
 if __name__ == "__main__":
     main()
