@@ -234,3 +234,23 @@ def test_analytic_frame_jacobian_matches_central_differences(model, camera):
     )[keep]
     assert jac[keep].abs().max() > 1.0  # the contour terms do depend on the pose
     assert err.max() < 1e-4 * (1 + jac[keep].abs().max()), err.max()
+
+
+def test_a_solve_uses_its_own_options_weights(model, camera):
+    # the layout is made once from the tracker's options; a start or a restart solves with
+    # other temporal weights, and those are the ones that count
+    layout = PoseLayout(model, TrackOptions())
+    truth = _pose(model, layout, camera, {"l_shoulder_abduct": 0.8})[None]
+    person = person_data_from_masks(_masks(model, camera, truth)[:, None], camera, stride=3)
+    start = truth.clone()
+    start[0, 6 + model.dof_index("l_shoulder_abduct")] = 0.4
+    scales = torch.ones(1, model.num_segments, 3, dtype=torch.float64)
+    held = TrackOptions(
+        iterations=4, rounds=1, temporal_joints=1e6, temporal_rotation=1e6, temporal_translation=1e6
+    )
+    free = TrackOptions(iterations=8, rounds=2)
+    stuck = solve_frame(model, scales, person, layout, start, start, held)
+    moved = solve_frame(model, scales, person, layout, start, start, free)
+    assert (stuck.x - start).abs().max() < 1e-4
+    k = 6 + model.dof_index("l_shoulder_abduct")
+    assert abs(float(moved.x[0, k]) - 0.8) < abs(float(start[0, k]) - 0.8) / 2

@@ -12,6 +12,7 @@ select_contour`) is made at the start of each of ``rounds`` solves.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import torch
@@ -87,16 +88,26 @@ class PoseLayout:
         kw = {"dtype": model.dtype, "device": model.device}
         inf = torch.full((6,), float("inf"), **kw)
         self.num_params = 6 + q
-        self.floor_weight = options.floor_weight
         self.lower = torch.cat([-inf, model.joint_lower.to(**kw)])
         self.upper = torch.cat([inf, model.joint_upper.to(**kw)])
+        self._set_weights(options)
+
+    def _set_weights(self, options: TrackOptions) -> None:
+        kw = {"dtype": self.lower.dtype, "device": self.lower.device}
+        self.floor_weight = options.floor_weight
         self.weights = torch.cat(
             [
                 torch.full((3,), options.temporal_translation, **kw),
                 torch.full((3,), options.temporal_rotation, **kw),
-                torch.full((q,), options.temporal_joints, **kw),
+                torch.full((self.num_params - 6,), options.temporal_joints, **kw),
             ]
         )
+
+    def for_options(self, options: TrackOptions) -> PoseLayout:
+        """The same layout with the temporal and floor weights of ``options``."""
+        other = copy.copy(self)
+        other._set_weights(options)
+        return other
 
     @staticmethod
     def split(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -296,13 +307,14 @@ def solve_frame(
         model: the body model.
         scales: (B, S, 3) the fitted segment scales of each sequence's subject.
         person: the frame's person data (J = 1 silhouette per row).
-        layout: the pose layout.
+        layout: the pose layout (its bounds; the weights are taken from ``options``).
         x0: (B, P) start.
         prediction: (B, P) the temporal term's target.
         options: tracker options.
         sampler: edge sampler of the model mesh (made when None).
     """
     sampler = sampler or EdgeSampler(model.faces, options.samples_per_edge)
+    layout = layout.for_options(options)  # the weights are this solve's (a restart's, ...)
     camera: Camera = person.camera
     x = layout.clip(x0)
     iterations = torch.zeros(x.shape[0], dtype=torch.long)

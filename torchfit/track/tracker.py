@@ -8,7 +8,8 @@ prediction ``2 x_{t-1} - x_{t-2}``.
 
 Recovery: a row whose contour RMS exceeds ``recover_factor`` times its sequence's running
 median of good frames (and at least ``recover_min_px``) is solved again from its last good
-frame, with no temporal pull; the frame's status is ``recovered`` when that brings it back
+frame, pulled towards that frame (not the extrapolation) and with twice the iterations; the
+frame's status is ``recovered`` when that brings it back
 under the threshold, ``uncertain`` otherwise; after either the velocity is reset (the next
 frame starts from this pose, not an extrapolation of a bad one), so one bad frame does not
 throw the next ones. ``confidence = 1 / (1 + (rms / confidence_px)²)``: a single
@@ -89,14 +90,8 @@ def track(
     it = iter(masks)
     if progress is not None:
         it = progress(it)
-    # a bad frame is solved again from the last good one, held closer to it, for longer
-    recovery = replace(
-        options,
-        temporal_joints=0.1,
-        temporal_rotation=0.1,
-        temporal_translation=1.0,
-        iterations=2 * options.iterations,
-    )
+    # a bad frame is solved again from the last good one, pulled towards it, for longer
+    recovery = replace(options, iterations=2 * options.iterations)
     for f, mask in enumerate(it):
         t0 = time.perf_counter()
         person = person_data_from_masks(
