@@ -52,6 +52,12 @@ class TrackOptions:
         floor_weight: pull of the lowest sole point towards the floor (z = 0), pixels per
             metre (a soft contact: someone jumping leaves the floor at that cost).
         contour_stride: use every n-th person contour pixel in e_P.
+        twist_weight: pull of the twists (DOFs named ``*twisting`` and ``*torsion``)
+            towards neutral (0), pixels per radian: a silhouette hardly shows a limb turning
+            about itself, and a twist left free drifts frame after frame (0 turns it off).
+        velocity_damping: the prediction is ``x_{t-1} + velocity_damping (x_{t-1} - x_{t-2})``
+            (1: constant velocity, 0: the last pose).
+        translation_damping: the same for the root translation.
         min_diag: floor of the solver's scaling (:attr:`torchfit.solver.LMOptions.min_diag`).
         jacobian: ``batched`` (forward differences, all the perturbed rows in one model
             call: the fastest on the CPU) or a solver Jacobian (``forward``, ``numeric``).
@@ -70,6 +76,9 @@ class TrackOptions:
     min_diag: float = 1e-6
     contour_stride: int = 3
     jacobian: str = "batched"
+    velocity_damping: float = 1.0
+    translation_damping: float = 1.0
+    twist_weight: float = 0.0
 
 
 class PoseLayout:
@@ -80,7 +89,12 @@ class PoseLayout:
         kw = {"dtype": model.dtype, "device": model.device}
         inf = torch.full((6,), float("inf"), **kw)
         self.num_params = 6 + q
+        self.damping = torch.full((6 + q,), options.velocity_damping, **kw)
+        self.damping[:3] = options.translation_damping
         self.floor_weight = options.floor_weight
+        twist = torch.tensor([n.endswith(("twisting", "torsion")) for n in model.dof_names])
+        #: (Q,) pull of each joint angle towards neutral, or None
+        self.neutral = (options.twist_weight * twist).to(**kw) if options.twist_weight else None
         self.lower = torch.cat([-inf, model.joint_lower.to(**kw)])
         self.upper = torch.cat([inf, model.joint_upper.to(**kw)])
         self.weights = torch.cat(
@@ -173,16 +187,13 @@ class _FrameResidual:
         # floor: the lowest sole point on the floor (z = 0), soft
         z = world[:, self.soles, 2] if len(self.soles) else xr[:, :1] * 0
         e_f = self.floor_weight * z.min(1, keepdim=True).values
+        parts = [e_p, e_m, e_t, e_f]
+        if self.layout.neutral is not None:
+            parts.append(self.layout.neutral * xr[:, 6:])
         mask = torch.cat(
-            [
-                valid_p,
-                valid_m,
-                torch.ones_like(e_t, dtype=torch.bool),
-                torch.ones_like(e_f, dtype=torch.bool),
-            ],
-            1,
+            [valid_p, valid_m] + [torch.ones_like(e, dtype=torch.bool) for e in parts[2:]], 1
         )
-        return torch.cat([e_p, e_m, e_t, e_f], 1), mask
+        return torch.cat(parts, 1), mask
 
     def jacobian(self, xr: torch.Tensor, index: torch.Tensor):
         """Forward differences, every perturbed copy of the rows in one batched call."""

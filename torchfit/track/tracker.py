@@ -102,7 +102,7 @@ def track(
         person = person_data_from_masks(
             mask[:, None], cameras, stride=options.contour_stride, dtype=model.dtype
         )
-        pred = layout.clip(2 * prev - prev2)
+        pred = layout.clip(prev + layout.damping * (prev - prev2))
         res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)
         status = ["ok"] * b
         limit = [
