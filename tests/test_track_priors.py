@@ -100,3 +100,30 @@ def test_upright_pull_undoes_a_lean_towards_the_camera(model, camera):
     print("trunk lean along the ray (sin):", lean)
     assert abs(lean["truth"]) < 0.05, lean
     assert abs(lean[60.0]) < 0.5 * abs(lean[0.0]), lean
+
+
+def test_first_frame_in_mid_jump_is_placed_by_its_size(model, camera):
+    """A person 35 cm above the floor in the first frame: the floor placement alone puts them
+    far behind (their lowest pixel on the floor); the sized placement keeps them in the air.
+    Someone standing keeps the floor placement."""
+    from torchfit.pipeline.track import _start
+
+    standing = _standing(model, camera, {"l_shoulder_abduct": 0.4, "r_shoulder_abduct": 0.4})
+    jumping = standing.clone()
+    jumping[0, 2] += 0.35
+    truth = torch.cat([standing, jumping])
+    cams = camera[[0, 0]]
+    t, r, q = PoseLayout.split(truth)
+    with torch.no_grad():
+        pix = project_points(model(_ones(model, 2), q, t, r).vertices, cams)
+    masks = torch.stack(
+        [torch.from_numpy(render_silhouette(p.numpy(), model.faces.numpy(), SIZE) > 0) for p in pix]
+    )
+    opts = TrackOptions(iterations=2)
+    x = _start(model, _ones(model, 2), cams, masks, PoseLayout(model, opts), opts)
+    err = (x[:, :3] - truth[:, :3]).norm(dim=1)
+    print("start root error (m):", err, "height error (m):", x[:, 2] - truth[:, 2])
+    # in the air within 10 cm (the floor placement alone is 1.4 m behind, on the floor)
+    assert err[1] < 0.1, err
+    # standing: on the floor (the lowest pixel's floor point leaves the depth some cm off)
+    assert abs(float(x[0, 2] - truth[0, 2])) < 0.03 and err[0] < 0.15, (x, truth)
