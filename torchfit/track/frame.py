@@ -6,12 +6,10 @@ residuals are the fit's (:mod:`torchfit.fit.residuals`): e_P, each person contou
 distance to the model contour over ``sqrt(|C_P|)``, and the person's contour distance map
 sampled at the model contour points (e_M per point, over ``sqrt(|C_M|)``), plus a temporal
 term ``w ⊙ (x - x_pred)`` towards the (damped) velocity prediction, a soft floor contact
-of the lowest sole point, and priors for what one silhouette does not show: the twists
-pulled towards neutral, the trunk towards upright in the camera's depth direction (each
-a function of the row and of posed world points of named vertices, with a weight in
-:class:`TrackOptions`; 0 leaves it out). Joint limits are the solver's bounds. The
-discrete model-contour choice (:func:`torchfit.fit.model_contour.select_contour`) is made
-at the start of each of ``rounds`` solves.
+of the lowest sole point, and a prior for what one silhouette does not show: the twists
+pulled towards neutral (``twist_weight``; 0 leaves it out). Joint limits are the solver's
+bounds. The discrete model-contour choice (:func:`torchfit.fit.model_contour.
+select_contour`) is made at the start of each of ``rounds`` solves.
 """
 
 from __future__ import annotations
@@ -21,7 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from torchfit.body.model import BodyModel
-from torchfit.camera import Camera, camera_centre, project_points
+from torchfit.camera import Camera, project_points
 from torchfit.fit.model_contour import (
     EdgeSampler,
     contour_endpoints,
@@ -59,12 +57,6 @@ class TrackOptions:
         twist_weight: pull of the twists (DOFs named ``*twisting`` and ``*torsion``)
             towards neutral (0), pixels per radian: a silhouette hardly shows a limb turning
             about itself, and a twist left free drifts frame after frame (0 turns it off).
-        upright_weight: pull of the trunk towards upright in the camera's depth direction,
-            pixels per unit of ``sin`` of the lean: a lean towards or away from the camera
-            hardly changes the silhouette (it shortens the trunk's image a little, which a
-            fitted trunk a little too long makes welcome), a sideways lean does and is left
-            to the silhouette (0 turns it off). The trunk is the line from a pelvis vertex to
-            a vertex at the neck joint, vertical in the neutral pose.
         velocity_damping: the prediction is ``x_{t-1} + velocity_damping (x_{t-1} - x_{t-2})``
             (1: constant velocity, 0: the last pose).
         min_diag: floor of the solver's scaling (:attr:`torchfit.solver.LMOptions.min_diag`).
@@ -87,22 +79,6 @@ class TrackOptions:
     jacobian: str = "batched"
     velocity_damping: float = 0.0
     twist_weight: float = 20.0
-    upright_weight: float = 0.0
-
-
-def _trunk_vertices(model: BodyModel) -> list[int]:
-    """[pelvis, neck] template vertices whose line is vertical in the neutral pose: the
-    vertex nearest the neck joint and, within 15 cm of the hip centre, the one under it."""
-    with torch.no_grad():
-        out = model(**model.zeros(1))
-        joints = model.joint_positions(out)
-    v = out.vertices[0]
-    if "neck" not in joints or "back" not in joints:
-        return []
-    top = int((v - joints["neck"][0]).norm(dim=1).argmin())
-    near = (v - joints["back"][0]).norm(dim=1) < 0.15
-    off = (v[:, :2] - v[top, :2]).norm(dim=1).masked_fill(~near, float("inf"))
-    return [int(off.argmin()), top]
 
 
 class PoseLayout:
@@ -114,8 +90,6 @@ class PoseLayout:
         inf = torch.full((6,), float("inf"), **kw)
         self.num_params = 6 + q
         self.floor_weight = options.floor_weight
-        self.upright_weight = options.upright_weight
-        self.trunk = _trunk_vertices(model)
         twist = torch.tensor([n.endswith(("twisting", "torsion")) for n in model.dof_names])
         #: (Q,) pull of each joint angle towards neutral, or None
         self.neutral = (options.twist_weight * twist).to(**kw) if options.twist_weight else None
@@ -177,15 +151,9 @@ class _FrameResidual:
         marks = model.template.landmarks
         soles = [marks[k] for k in ("l_sole", "r_sole", "l_toe", "r_toe") if k in marks]
         self.floor_weight = layout.floor_weight if soles else 0.0
-        trunk = layout.trunk if layout.upright_weight > 0 else []
-        extra = torch.tensor(soles + trunk, dtype=torch.long, device=ep.model_a.device)
+        extra = torch.tensor(soles, dtype=torch.long, device=ep.model_a.device)
         self.verts = torch.unique(torch.cat([ep.vertices(), extra]))
-        self.soles = torch.searchsorted(self.verts, extra[: len(soles)])
-        self.trunk = torch.searchsorted(self.verts, extra[len(soles) :])
-        # the horizontal direction of the camera ray to the predicted root
-        ray = prediction[:, :3] - camera_centre(self.camera.R, self.camera.t).to(prediction.dtype)
-        ray[:, 2] = 0
-        self.depth_dir = ray / ray.norm(dim=1, keepdim=True).clamp_min(1e-9)
+        self.soles = torch.searchsorted(self.verts, extra)
         where = lambda idx: torch.searchsorted(self.verts, idx)  # noqa: E731
         self.ma, self.mb = where(ep.model_a), where(ep.model_b)
         self.pa, self.pb = where(ep.person_a), where(ep.person_b)
@@ -220,19 +188,10 @@ class _FrameResidual:
         parts = [e_p, e_m, e_t, e_f]
         if self.layout.neutral is not None:
             parts.append(self.layout.neutral * xr[:, 6:])
-        if len(self.trunk) == 2:
-            parts.append(self._upright(world, index))
         mask = torch.cat(
             [valid_p, valid_m] + [torch.ones_like(e, dtype=torch.bool) for e in parts[2:]], 1
         )
         return torch.cat(parts, 1), mask
-
-    def _upright(self, world: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-        """(B, 1) the trunk's lean towards or away from the camera (sin), weighted."""
-        d = world[:, self.trunk[1]] - world[:, self.trunk[0]]
-        n = d / d.norm(dim=1, keepdim=True)
-        lean = (n * self.depth_dir[index].to(world.dtype)).sum(1, keepdim=True)
-        return self.layout.upright_weight * lean
 
     def jacobian(self, xr: torch.Tensor, index: torch.Tensor):
         """Forward differences, every perturbed copy of the rows in one batched call."""
