@@ -1,5 +1,6 @@
 """The tracker's priors for what one silhouette does not show, on rendered template
-silhouettes: the twist pull keeps an invisible twist near neutral; the damped prediction."""
+silhouettes: the twist pull keeps an invisible twist near neutral, and a first frame in
+mid-jump is placed by its size rather than on the floor."""
 
 import pytest
 import torch
