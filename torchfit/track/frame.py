@@ -54,6 +54,11 @@ class TrackOptions:
         floor_weight: pull of the lowest sole point towards the floor (z = 0), pixels per
             metre (a soft contact: someone jumping leaves the floor at that cost).
         contour_stride: use every n-th person contour pixel in e_P.
+        twist_weight: pull of the twists (DOFs named ``*twisting`` and ``*torsion``)
+            towards neutral (0), pixels per radian: a silhouette hardly shows a limb turning
+            about itself, and a twist left free drifts frame after frame (0 turns it off).
+        velocity_damping: the prediction is ``x_{t-1} + velocity_damping (x_{t-1} - x_{t-2})``
+            (1: constant velocity, 0: the last pose).
         ftol, xtol: the solver's stopping tolerances (:class:`torchfit.solver.LMOptions`):
             a row stops before ``iterations`` once its relative cost reduction or its
             relative step falls below them.
@@ -72,12 +77,14 @@ class TrackOptions:
     recover_factor: float = 2.5
     recover_min_px: float = 4.0
     confidence_px: float = 6.0
-    floor_weight: float = 100.0
+    floor_weight: float = 30.0
     min_diag: float = 1e-6
     contour_stride: int = 3
     jacobian: str = "analytic"
     ftol: float = 1e-3
     xtol: float = 1e-3
+    velocity_damping: float = 0.0
+    twist_weight: float = 20.0
 
 
 class PoseLayout:
@@ -90,11 +97,16 @@ class PoseLayout:
         self.num_params = 6 + q
         self.lower = torch.cat([-inf, model.joint_lower.to(**kw)])
         self.upper = torch.cat([inf, model.joint_upper.to(**kw)])
+        self._twist = torch.tensor([n.endswith(("twisting", "torsion")) for n in model.dof_names])
         self._set_weights(options)
 
     def _set_weights(self, options: TrackOptions) -> None:
         kw = {"dtype": self.lower.dtype, "device": self.lower.device}
         self.floor_weight = options.floor_weight
+        #: (Q,) pull of each joint angle towards neutral, or None
+        self.neutral = (
+            (options.twist_weight * self._twist).to(**kw) if options.twist_weight else None
+        )
         self.weights = torch.cat(
             [
                 torch.full((3,), options.temporal_translation, **kw),
@@ -214,8 +226,13 @@ class _FrameResidual:
 
     def _mask(self, index: torch.Tensor) -> torch.Tensor:
         valid_p, valid_m = self.valid[index], self.sample_valid[index]
-        rest = torch.ones(valid_p.shape[0], self.layout.num_params + 1, dtype=torch.bool)
+        extra = 0 if self.layout.neutral is None else self.layout.num_params - 6
+        rest = torch.ones(valid_p.shape[0], self.layout.num_params + 1 + extra, dtype=torch.bool)
         return torch.cat([valid_p, valid_m, rest.to(valid_p.device)], 1)
+
+    def _neutral(self, xr: torch.Tensor) -> list[torch.Tensor]:
+        """The pull of the joint angles towards neutral (the twists), as a list of 0 or 1."""
+        return [] if self.layout.neutral is None else [self.layout.neutral * xr[:, 6:]]
 
     def __call__(self, xr: torch.Tensor, index: torch.Tensor):
         p, world = _pixels(self.model, self.scales[index], self.camera[index], xr, self.verts)
@@ -224,7 +241,7 @@ class _FrameResidual:
         # floor: the lowest sole point on the floor (z = 0), soft
         z = world[:, self.soles, 2] if len(self.soles) else xr[:, :1] * 0
         e_f = self.floor_weight * z.min(1, keepdim=True).values
-        return torch.cat([e_p, e_m, e_t, e_f], 1), self._mask(index)
+        return torch.cat([e_p, e_m, e_t, e_f, *self._neutral(xr)], 1), self._mask(index)
 
     def analytic_jacobian(self, xr: torch.Tensor, index: torch.Tensor):
         """The Jacobian in one pass: the posed contour vertices' pose derivatives in closed
@@ -262,8 +279,13 @@ class _FrameResidual:
         else:
             j_f = torch.zeros(n, 1, p_count, dtype=xr.dtype, device=xr.device)
             e_f = xr[:, :1] * 0
-        r0 = torch.cat([e_p.detach(), e_m.detach(), e_t, e_f], 1)
-        return torch.cat([j_p, j_m, j_t, j_f], 1), r0
+        r0 = torch.cat([e_p.detach(), e_m.detach(), e_t, e_f, *self._neutral(xr)], 1)
+        jac = [j_p, j_m, j_t, j_f]
+        if self.layout.neutral is not None:
+            j_n = torch.zeros(n, p_count - 6, p_count, dtype=xr.dtype, device=xr.device)
+            j_n[:, :, 6:] = torch.diag(self.layout.neutral.to(xr))
+            jac.append(j_n)
+        return torch.cat(jac, 1), r0
 
     def batched_jacobian(self, xr: torch.Tensor, index: torch.Tensor):
         """Forward differences, every perturbed copy of the rows in one batched call."""

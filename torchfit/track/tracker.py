@@ -3,8 +3,10 @@
 Per frame: each sequence's image is segmented against its background
 (:func:`torchfit.image.segment`), the person data are made as for the fit
 (:func:`torchfit.fit.person.person_data_from_masks`), and :func:`torchfit.track.frame.
-solve_frame` fits every row's pose, warm-started and pulled towards the constant-velocity
-prediction ``2 x_{t-1} - x_{t-2}``.
+solve_frame` fits every row's pose, warm-started and pulled towards the prediction
+``x_{t-1} + d (x_{t-1} - x_{t-2})`` (``d`` the options' ``velocity_damping``: 1
+extrapolates the last velocity, 0 holds the last pose; a silhouette leaves some directions
+unseen, and a velocity extrapolated along them makes the pose drift).
 
 Recovery: a row whose contour RMS exceeds ``recover_factor`` times its sequence's running
 median of good frames (and at least ``recover_min_px``) is solved again from its last good
@@ -97,7 +99,7 @@ def track(
         person = person_data_from_masks(
             mask[:, None], cameras, stride=options.contour_stride, dtype=model.dtype
         )
-        pred = layout.clip(2 * prev - prev2)
+        pred = layout.clip(prev + options.velocity_damping * (prev - prev2))
         res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)
         status = ["ok"] * b
         limit = [
