@@ -80,6 +80,7 @@ def person_data_from_masks(
     dtype: torch.dtype = torch.float64,
     uncertain: torch.Tensor | None = None,
     margin_px: int = 2,
+    crop_margin_px: int | None = None,
 ) -> PersonData:
     """Person contours and distance maps from silhouettes.
 
@@ -96,6 +97,12 @@ def person_data_from_masks(
             like its own shadow then neither pulls the model's feet up nor pushes the model
             back (the floor contact would turn that into a taller body).
         margin_px: see ``uncertain``.
+        crop_margin_px: compute each distance map on the box around all rows' silhouettes,
+            grown by this many pixels, instead of the whole image (None: the whole image).
+            Inside the box the map is exact (every contour pixel is in it, and the distance
+            between two pixels of a box does not leave it); outside, a pixel takes the box
+            edge's value plus its Euclidean distance to the box, a bound that keeps growing
+            away from the person. For a tracker, whose model stays near the silhouette.
 
     Returns:
         :class:`PersonData`; an empty silhouette gives an empty contour and a map of large
@@ -127,7 +134,31 @@ def person_data_from_masks(
                 ok[i, : len(c)] &= ~near[i, k, c[:, 1], c[:, 0]]
         contours.append(pts)
         valid.append(ok)
-        dmap = mask_to_distance_map(masks[:, k : k + 1], method)[:, 0].to(dtype)
+        if crop_margin_px is None:
+            dmap = mask_to_distance_map(masks[:, k : k + 1], method)[:, 0].to(dtype)
+        else:
+            dmap = _cropped_distance_map(masks[:, k], method, crop_margin_px).to(dtype)
         maps.append(torch.nan_to_num(dmap, posinf=float(h + w)))
     flags = None if uncertain is None else [uncertain[:, k] for k in range(n_pose)]
     return PersonData(contours, valid, maps, camera, flags)
+
+
+def _cropped_distance_map(masks: torch.Tensor, method: str, margin: int) -> torch.Tensor:
+    """(B, H, W) distance maps of (B, H, W) silhouettes computed on their common box grown by
+    ``margin`` (see :func:`person_data_from_masks`, ``crop_margin_px``)."""
+    b, h, w = masks.shape
+    rows = masks.any(0).any(1).nonzero().flatten()
+    cols = masks.any(0).any(0).nonzero().flatten()
+    if rows.numel() == 0:  # no silhouette at all: the whole image, as without a crop
+        return mask_to_distance_map(masks[:, None], method)[:, 0]
+    y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin, h - 1)
+    x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin, w - 1)
+    crop = mask_to_distance_map(masks[:, None, y0 : y1 + 1, x0 : x1 + 1], method)
+    # outside the box: the nearest box pixel's value plus the distance to it
+    pad = (x0, w - 1 - x1, y0, h - 1 - y1)
+    edge = torch.nn.functional.pad(crop, pad, mode="replicate")[:, 0]
+    v = torch.arange(h, device=masks.device, dtype=edge.dtype)
+    u = torch.arange(w, device=masks.device, dtype=edge.dtype)
+    dv = (y0 - v).clamp_min(0) + (v - y1).clamp_min(0)
+    du = (x0 - u).clamp_min(0) + (u - x1).clamp_min(0)
+    return edge + (dv[:, None] ** 2 + du[None, :] ** 2).sqrt()

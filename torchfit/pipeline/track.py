@@ -227,7 +227,11 @@ def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
         x0[j, 2] = -low[j] if pz is None else pz
     # the distance maps once per sequence, shared by its hypotheses
     person = person_data_from_masks(
-        mask[:, None], cameras, stride=options.contour_stride, dtype=model.dtype
+        mask[:, None],
+        cameras,
+        stride=options.contour_stride,
+        dtype=model.dtype,
+        crop_margin_px=options.distance_margin_px,
     ).subset(torch.arange(b).repeat_interleave(n))
     # held towards the neutral start by the tracker's own temporal weights and priors (the
     # layout's); free root and 0.5 px/rad on the joints gave worse starts on 01_01 clips

@@ -54,6 +54,9 @@ class TrackOptions:
         floor_weight: pull of the lowest sole point towards the floor (z = 0), pixels per
             metre (a soft contact: someone jumping leaves the floor at that cost).
         contour_stride: use every n-th person contour pixel in e_P.
+        distance_margin_px: the person's distance map is computed on the box around the
+            silhouettes grown by this many pixels (exact there; beyond it a bound, see
+            :func:`torchfit.fit.person.person_data_from_masks`); None: the whole image.
         twist_weight: pull of the twists (DOFs named ``*twisting`` and ``*torsion``)
             towards neutral (0), pixels per radian: a silhouette hardly shows a limb turning
             about itself, and a twist left free drifts frame after frame (0 turns it off).
@@ -80,6 +83,7 @@ class TrackOptions:
     floor_weight: float = 30.0
     min_diag: float = 1e-6
     contour_stride: int = 3
+    distance_margin_px: int | None = 48
     jacobian: str = "analytic"
     ftol: float = 1e-3
     xtol: float = 1e-3

@@ -97,7 +97,11 @@ def track(
     for f, mask in enumerate(it):
         t0 = time.perf_counter()
         person = person_data_from_masks(
-            mask[:, None], cameras, stride=options.contour_stride, dtype=model.dtype
+            mask[:, None],
+            cameras,
+            stride=options.contour_stride,
+            dtype=model.dtype,
+            crop_margin_px=options.distance_margin_px,
         )
         pred = layout.clip(prev + options.velocity_damping * (prev - prev2))
         res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)

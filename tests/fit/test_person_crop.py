@@ -1,0 +1,44 @@
+"""person_data_from_masks(crop_margin_px=...): the distance maps on the silhouettes' box are
+those of the whole image inside the box and keep growing outside it."""
+
+import pytest
+import torch
+
+from torchfit.fit.person import person_data_from_masks
+from torchfit.viz.preview import nominal_view
+
+
+def _blobs() -> torch.Tensor:
+    masks = torch.zeros(2, 1, 120, 160, dtype=torch.bool)
+    masks[0, 0, 30:90, 60:80] = True  # a bar
+    masks[0, 0, 40:50, 40:100] = True  # and arms
+    masks[1, 0, 50:100, 70:110] = True  # another row, another place
+    return masks
+
+
+@pytest.mark.parametrize("method", ["chamfer", "euclidean"])
+def test_cropped_maps_equal_the_whole_image_inside_the_box(method):
+    masks = _blobs()
+    camera = nominal_view(image_size=(160, 120))[[0, 0]]
+    whole = person_data_from_masks(masks, camera, method=method).distance_maps[0]
+    margin = 8
+    crop = person_data_from_masks(masks, camera, method=method, crop_margin_px=margin)
+    cropped = crop.distance_maps[0]
+    y0, y1, x0, x1 = 30 - margin, 99 + margin, 40 - margin, 109 + margin  # both rows' box
+    torch.testing.assert_close(
+        cropped[:, y0 : y1 + 1, x0 : x1 + 1], whole[:, y0 : y1 + 1, x0 : x1 + 1]
+    )
+    outside = torch.ones(120, 160, dtype=torch.bool)
+    outside[y0 : y1 + 1, x0 : x1 + 1] = False
+    assert (cropped[:, outside] - whole[:, outside]).abs().max() > 0  # it is not the same map
+    # away from the box the bound keeps growing: the corner is the farthest pixel
+    assert (cropped[:, 0, 0] > cropped[:, y0, x0]).all()
+    assert (cropped[:, 0, 0] >= 0.8 * whole[:, 0, 0]).all()
+
+
+def test_an_empty_frame_gives_the_whole_image_map():
+    masks = torch.zeros(1, 1, 60, 80, dtype=torch.bool)
+    camera = nominal_view(image_size=(80, 60))
+    a = person_data_from_masks(masks, camera).distance_maps[0]
+    b = person_data_from_masks(masks, camera, crop_margin_px=4).distance_maps[0]
+    torch.testing.assert_close(a, b)
