@@ -21,6 +21,7 @@ import statistics
 import time
 
 import torch
+import yaml
 
 from torchfit.body.model import BodyModel
 from torchfit.camera import stack_cameras
@@ -48,7 +49,9 @@ def main() -> None:
             key, value = item.split("=", 1)
             if key not in fields:
                 p.error(f"--baseline: unknown tracker option {key!r}")
-            changes[key] = type(getattr(cfg.track, key))(value)
+            parsed = yaml.safe_load(value)  # numbers, null, strings
+            default = getattr(cfg.track, key)
+            changes[key] = float(parsed) if isinstance(default, float) else parsed
         variants["baseline"] = dataclasses.replace(cfg.track, **changes)
     template, scales = load_fitted(args.model)
     model = BodyModel(template)
