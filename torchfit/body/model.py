@@ -63,6 +63,13 @@ def _left_jacobian(rotvec: torch.Tensor) -> torch.Tensor:
     return eye + b * k + c * (k @ k)
 
 
+def _cross_matrix(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) matrices ``[v]×`` with ``[v]× w = v × w`` of vectors (..., 3)."""
+    x, y, z = v.unbind(-1)
+    zero = torch.zeros_like(x)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
+
+
 @dataclass
 class BodyOutput:
     """A posed body.
@@ -321,15 +328,20 @@ class BodyModel(torch.nn.Module):
         axes = (dof_rot @ chain.axes[..., None])[..., 0]  # (B, Q, 3) world axes
         pivots = out.origins[:, chain.dof_pivot]  # (B, Q, 3)
         seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
-        moves = chain.dof_moves[:, seg].T.to(p.dtype)  # (K, Q)
-        arm = p[:, :, None, :] - pivots[:, None]  # (B, K, Q, 3)
-        d_q = torch.linalg.cross(axes[:, None].expand_as(arm), arm) * moves[None, :, :, None]
-        d_t = torch.eye(3, dtype=p.dtype, device=p.device).expand(b, k, 3, 3)
+        moves = chain.dof_moves[:, seg].to(p.dtype)  # (Q, K)
+        q = axes.shape[1]
+        jac = torch.zeros(b, 3, 6 + q, k, dtype=p.dtype, device=p.device)
+        jac[:, [0, 1, 2], [0, 1, 2]] = 1.0
+        # a × (p − c) = [a]× p − a × c, for every DOF and vertex in one batched product
+        turn = (_cross_matrix(axes).reshape(b, 3 * q, 3) @ p.transpose(1, 2)).reshape(b, q, 3, k)
+        turn = turn - torch.linalg.cross(axes, pivots)[..., None]  # (B, Q, 3, K)
+        jac[:, :, 6:] = (turn * moves[:, None]).transpose(1, 2)
+        # root rotation: column c is J_l[:, c] × (p − t)
         left = _left_jacobian(root_rotation)  # (B, 3, 3)
-        rel = (p - root_translation[:, None]).unsqueeze(-2).expand(b, k, 3, 3)
-        d_r = torch.linalg.cross(left.transpose(1, 2)[:, None].expand_as(rel), rel)  # rows: columns
-        jac = torch.cat([d_t, d_r.transpose(-1, -2), d_q.transpose(-1, -2)], dim=-1)
-        return p, jac
+        rel = (p - root_translation[:, None]).transpose(1, 2)  # (B, 3, K)
+        cols = _cross_matrix(left.transpose(1, 2))  # (B, 3, 3, 3): [J_l[:, c]]×
+        jac[:, :, 3:6] = (cols @ rel[:, None]).transpose(1, 2)
+        return p, jac.permute(0, 3, 1, 2)
 
     def joint_positions(self, out: BodyOutput) -> dict[str, torch.Tensor]:
         """Named joint centres (design.md section 3 names) of a posed body.
