@@ -204,3 +204,29 @@ def test_load_camera_file_errors(tmp_path):
     with pytest.raises(CameraError, match=r"\[left\]: missing key 'image_size'"):
         (tmp_path / "s.yaml").write_text("left: {}\nright: {}\n")
         load_stereo_cameras(tmp_path / "s.yaml")
+
+
+def test_projection_jacobian_matches_central_differences():
+    from torchfit.camera import Camera, project_points, projection_jacobian
+    from torchfit.viz.preview import nominal_view
+
+    base = nominal_view(distance=3.5, azimuth_deg=30.0, focal=450.0, image_size=(320, 256))
+    k = base.K.clone()
+    k[:, 0, 1] = 0.7  # a skew, so that every intrinsic term counts
+    dist = torch.tensor([[0.12, -0.05, 0.002, -0.003, 0.01]], dtype=torch.float64)
+    cam = Camera(K=k, dist=dist, R=base.R, t=base.t, image_size=base.image_size)[[0, 0]]
+    g = torch.Generator().manual_seed(0)
+    points = 0.5 * torch.randn(2, 60, 3, generator=g, dtype=torch.float64)
+    pixels, jac = projection_jacobian(points, cam)
+    torch.testing.assert_close(pixels, project_points(points, cam), atol=1e-9, rtol=0)
+    h = 1e-6
+    cols = []
+    for c in range(3):
+        step = torch.zeros_like(points)
+        step[..., c] = h
+        cols.append(
+            (project_points(points + step, cam) - project_points(points - step, cam)) / (2 * h)
+        )
+    central = torch.stack(cols, -1)
+    assert central.abs().max() > 50  # pixels per metre: the test has something to check
+    torch.testing.assert_close(jac, central, atol=1e-6, rtol=1e-7)

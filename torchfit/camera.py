@@ -38,6 +38,7 @@ __all__ = [
     "world_to_camera",
     "distort_normalized",
     "project_points",
+    "projection_jacobian",
     "look_at",
     "camera_centre",
     "ROTATION_TOLERANCE",
@@ -316,3 +317,44 @@ def project_points(
     v = K[:, 1:2, 1] * xy[..., 1] + K[:, 1:2, 2]
     pixels = torch.stack([u, v], dim=-1)
     return (pixels, depth) if return_depth else pixels
+
+
+def projection_jacobian(points: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixels of world points and their derivatives w.r.t. the points, in closed form.
+
+    ``pixel = K · distort(x / z, y / z)`` of the camera-frame point ``R X + t``: the product of
+    the intrinsics' 2x2 block, the distortion's Jacobian (OpenCV's radial and tangential
+    model, :func:`distort_normalized`), the perspective division's 2x3 and ``R``.
+
+    Args:
+        points: (B, N, 3) world points, metres.
+        camera: B cameras (or one, broadcast).
+
+    Returns:
+        (B, N, 2) pixels (as :func:`project_points`) and (B, N, 2, 3) ``∂pixel/∂X``.
+    """
+    cam = world_to_camera(points, camera)
+    inv_z = 1.0 / cam[..., 2]
+    x, y = cam[..., 0] * inv_z, cam[..., 1] * inv_z
+    k1, k2, p1, p2, k3 = (camera.dist[:, i : i + 1] for i in range(5))
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    d_radial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    # the distortion's Jacobian w.r.t. (x, y)
+    dxx = radial + 2 * x * x * d_radial + 2 * p1 * y + 6 * p2 * x
+    dxy = 2 * x * y * d_radial + 2 * p1 * x + 2 * p2 * y
+    dyy = radial + 2 * y * y * d_radial + 6 * p1 * y + 2 * p2 * x
+    fx, s, cx = camera.K[:, 0:1, 0], camera.K[:, 0:1, 1], camera.K[:, 0:1, 2]
+    fy, cy = camera.K[:, 1:2, 1], camera.K[:, 1:2, 2]
+    pixels = torch.stack([fx * xd + s * yd + cx, fy * yd + cy], dim=-1)
+    # pixel w.r.t. (x, y): K's 2x2 block times the distortion's (symmetric off-diagonal)
+    a = torch.stack([fx * dxx + s * dxy, fx * dxy + s * dyy, fy * dxy, fy * dyy], -1)
+    a = a.reshape(*x.shape, 2, 2)
+    # (x, y) w.r.t. the camera-frame point, then w.r.t. the world point (R)
+    zero = torch.zeros_like(x)
+    persp = torch.stack([inv_z, zero, -x * inv_z, zero, inv_z, -y * inv_z], -1)
+    persp = persp.reshape(*x.shape, 2, 3)
+    rot = camera.R.expand(points.shape[0], -1, -1)[:, None]  # (B, 1, 3, 3)
+    return pixels, a @ persp @ rot

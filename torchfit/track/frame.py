@@ -16,10 +16,9 @@ import copy
 from dataclasses import dataclass
 
 import torch
-import torch.autograd.forward_ad as fwad
 
 from torchfit.body.model import BodyModel
-from torchfit.camera import Camera, project_points
+from torchfit.camera import Camera, project_points, projection_jacobian
 from torchfit.fit.model_contour import (
     EdgeSampler,
     contour_endpoints,
@@ -155,19 +154,14 @@ class FrameResult:
 
 def _project_with_jacobian(world: torch.Tensor, d_world: torch.Tensor, camera: Camera):
     """Pixels (N, K, 2) of world points (N, K, 3) and their Jacobian (N, K, 2, P) from the
-    points' (N, K, 3, P): the projection's derivative by forward mode, the three world axes
-    folded into the batch."""
-    n, k = world.shape[:2]
-    tangent = torch.zeros(3, n, k, 3, dtype=world.dtype, device=world.device)
-    for c in range(3):
-        tangent[c, ..., c] = 1.0
-    rows = torch.arange(n, device=world.device).repeat(3)
-    with fwad.dual_level():
-        dual = fwad.make_dual(world.repeat(3, 1, 1), tangent.reshape(3 * n, k, 3))
-        primal, tan = fwad.unpack_dual(project_points(dual, camera[rows]))
-    d_pix = tan.reshape(3, n, k, 2)  # d_pix[c]: derivative along world axis c
-    prod = d_pix.permute(1, 2, 3, 0)[..., None] * d_world[:, :, None]  # (N, K, 2, 3, P)
-    return primal[:n], prod[:, :, :, 0] + prod[:, :, :, 1] + prod[:, :, :, 2]
+    points' (N, K, 3, P), through the projection's closed-form derivative."""
+    pixels, d_pix = projection_jacobian(world, camera)
+    # a 2x3 by 3xP product per point, as three broadcast multiply-adds (a batched matmul of
+    # tiny matrices is slower)
+    out = d_pix[..., 0, None] * d_world[:, :, None, 0]
+    out += d_pix[..., 1, None] * d_world[:, :, None, 1]
+    out += d_pix[..., 2, None] * d_world[:, :, None, 2]
+    return pixels, out
 
 
 def _pixels(model, scales, camera, x, vertex_index):
