@@ -243,7 +243,7 @@ class _FrameResidual:
 
     def analytic_jacobian(self, xr: torch.Tensor, index: torch.Tensor):
         """The Jacobian in one pass: the posed contour vertices' pose derivatives in closed
-        form (:meth:`BodyModel.pose_jacobian`), through the projection by forward mode, times
+        form (:meth:`BodyModel.pose_jacobian`), through the projection's derivative, times
         each residual entry's derivative w.r.t. its own endpoint pixels (reverse mode)."""
         n, p_count = xr.shape
         t, r, q = PoseLayout.split(xr)
