@@ -5,9 +5,11 @@ axis-angle), joint_angles (Q)]``; the segment scales are fixed (the fitted model
 residuals are the fit's (:mod:`torchfit.fit.residuals`): e_P, each person contour pixel's
 distance to the model contour over ``sqrt(|C_P|)``, and the person's contour distance map
 sampled at the model contour points (e_M per point, over ``sqrt(|C_M|)``), plus a temporal
-term ``w ⊙ (x - x_pred)`` towards the constant-velocity prediction. Joint limits are the
-solver's bounds. The discrete model-contour choice (:func:`torchfit.fit.model_contour.
-select_contour`) is made at the start of each of ``rounds`` solves.
+term ``w ⊙ (x - x_pred)`` towards the prediction (:mod:`torchfit.track.tracker`), a soft floor
+contact of the lowest sole point and a pull of the twists towards neutral. Joint limits are
+the solver's bounds. The discrete model-contour choice (:func:`torchfit.fit.model_contour.
+select_contour`) is made at the start of each of ``rounds`` solves. The Jacobian is in closed
+form (:meth:`_FrameResidual.analytic_jacobian`).
 """
 
 from __future__ import annotations
