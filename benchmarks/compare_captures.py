@@ -38,22 +38,22 @@ def _measurements(runs: list[Path], subject: str) -> dict[str, float]:
     return {k: float(flat[k]) for k in KEYS if k in flat}
 
 
-def _masks(folder: Path, background: Path):
-    import numpy as np
-    import torch
-
+def _background_model(folder: Path):
+    """The segmentation's background model (default options) of a subject folder."""
     from torchfit.image.background import fit_background
+    from torchfit.image.segment import SegmentationOptions
+    from torchfit.io.images import load_frames
+
+    return fit_background(load_frames(folder / "background")[0], SegmentationOptions())
+
+
+def _masks(folder: Path, model):
+    """(6, H, W) silhouettes of a subject folder's postures against a background model."""
     from torchfit.image.segment import SegmentationOptions, segment
-    from torchfit.io.images import list_images, read_image
+    from torchfit.io.images import load_frames
 
-    def load(paths):
-        stack = np.stack([read_image(p) for p in paths])
-        return torch.from_numpy(stack).permute(0, 3, 1, 2).float() / 255
-
-    options = SegmentationOptions()
-    model = fit_background(load(list_images(background / "background")), options)
     poses = [folder / "poses" / f"pose{k}.png" for k in range(1, 7)]
-    return segment(load(poses), model, options).masks[:, 0].numpy()
+    return segment(load_frames(poses)[0], model, SegmentationOptions()).masks[:, 0].numpy()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,10 +80,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     try:
         for ref in args.reference:
-            base = _masks(args.subjects / ref, args.subjects / ref)
+            model = _background_model(args.subjects / ref)  # once per reference
+            base = _masks(args.subjects / ref, model)
             print(f"silhouette pixels differing from {ref}'s, pose1..pose6 and total:")
             for cap in args.captured:
-                masks = _masks(args.subjects / cap, args.subjects / ref)
+                masks = _masks(args.subjects / cap, model)
                 counts = [int((a ^ b).sum()) for a, b in zip(masks, base, strict=True)]
                 print(f"  {' '.join(f'{c:6d}' for c in counts)}  {sum(counts):7d}  {cap}")
     except (OSError, ValueError, TorchfitError) as exc:

@@ -27,9 +27,8 @@ paper's section 9 as a web page on the loopback interface only, ``http://127.0.0
 (``--port``, default 8765; the address is printed): the live image with the target posture's
 template contour and the match score. Step out of view for the first 10 frames (the
 background); a posture is captured when its score stays at least ``--min-score`` (0.5) for
-a second, then the
-next one is the target; its image is the median of the last frames of that second (up to
-``--hold-frames``) whose silhouettes agree with the last one's.
+a second, then the next one is the target; its image is the median of the last frames of
+that second (up to ``--hold-frames``) whose silhouettes agree with the last one's.
 
 Exit codes: 0 all six postures captured; 1 some posture not found (the others written);
 2 bad arguments or config; 3 the outputs cannot be written; 4 the video or camera missing or
@@ -51,14 +50,15 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from torchfit.capture.offline import CaptureOptions  # noqa: E402
 from torchfit.config import Config, load_config  # noqa: E402
 from torchfit.errors import DataError, OutputError, TorchfitError  # noqa: E402
 from torchfit.io.camera import load_camera, save_camera  # noqa: E402
 from torchfit.io.files import write_atomic  # noqa: E402
 from torchfit.io.images import list_images, read_image, write_image  # noqa: E402
 
-DEFAULT_HOLD_FRAMES = 1
-DEFAULT_HOLD_IOU = 0.97
+#: the capture's defaults (``--hold-frames``, ``--hold-iou``, ``--min-score``)
+DEFAULTS = CaptureOptions()
 POSTURE_NAMES = ("stand", "straddle", "side_knee", "t_pose", "cactus", "side_stand")
 
 
@@ -107,24 +107,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--hold-frames",
         type=int,
-        default=DEFAULT_HOLD_FRAMES,
+        default=DEFAULTS.hold_frames,
         metavar="N",
         help="frames combined (per-pixel median) per posture image; 1: the chosen frame alone "
-        f"(default {DEFAULT_HOLD_FRAMES})",
+        f"(default {DEFAULTS.hold_frames})",
     )
     p.add_argument(
         "--hold-iou",
         type=float,
-        default=DEFAULT_HOLD_IOU,
+        default=DEFAULTS.hold_iou,
         help="a combined frame's silhouette overlap (IoU) with the chosen frame's, at least "
-        f"(default {DEFAULT_HOLD_IOU})",
+        f"(default {DEFAULTS.hold_iou})",
     )
     p.add_argument(
         "--min-score",
         type=float,
-        default=0.5,
+        default=DEFAULTS.min_score,
         help="a posture's frame must match its template with at least this intersection "
-        "over union (default 0.5)",
+        f"over union (default {DEFAULTS.min_score})",
     )
     p.add_argument("--config", type=Path, help="torchfit config YAML (segmentation: section)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
@@ -144,6 +144,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def _capture_options(args: argparse.Namespace) -> CaptureOptions:
+    return CaptureOptions(
+        min_score=args.min_score, hold_frames=args.hold_frames, hold_iou=args.hold_iou
+    )
+
+
 def _frame(frames: torch.Tensor, i: int) -> np.ndarray:
     return np.ascontiguousarray(frames[i].permute(1, 2, 0).numpy())
 
@@ -152,7 +158,6 @@ def live(args: argparse.Namespace, config: Config) -> int:
     """``--device``: the guidance page while capturing (torchfit.capture.live)."""
     from torchfit.body.model import BodyModel
     from torchfit.capture.live import GuidanceServer, run_live
-    from torchfit.capture.offline import CaptureOptions
 
     try:
         camera = load_camera(args.camera)
@@ -176,9 +181,7 @@ def live(args: argparse.Namespace, config: Config) -> int:
             server,
             args.height_m,
             config.segmentation,
-            CaptureOptions(
-                min_score=args.min_score, hold_frames=args.hold_frames, hold_iou=args.hold_iou
-            ),
+            _capture_options(args),
         )
         time.sleep(max(args.linger, 0.0))
     except TorchfitError as exc:
@@ -211,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         camera = load_camera(args.camera)
         frames, fps = read_video(args.video)
         from torchfit.body.model import BodyModel
-        from torchfit.capture.offline import CaptureOptions, capture_from_frames, median_frame
+        from torchfit.capture.offline import capture_from_frames, median_frame
 
         model = BodyModel(config.model.template)
         result = capture_from_frames(
@@ -220,9 +223,7 @@ def main(argv: list[str] | None = None) -> int:
             model,
             args.height_m,
             config.segmentation,
-            CaptureOptions(
-                min_score=args.min_score, hold_frames=args.hold_frames, hold_iou=args.hold_iou
-            ),
+            _capture_options(args),
             progress=lambda n: tqdm(total=n, desc="segment", unit="frame"),
         )
     except TorchfitError as exc:
@@ -259,12 +260,10 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     for k in range(1, 7):
         entry = document["postures"][f"pose{k}"]
-        where = "NOT FOUND"
-        if entry["frame"] is not None:
-            used = entry["combined_frames"]
-            where = f"frame {entry['frame']} (median of {used[0]}-{used[-1]})"
-            if len(used) == 1:
-                where = f"frame {entry['frame']}"
+        used = entry["combined_frames"] or []
+        where = f"frame {entry['frame']}" if entry["frame"] is not None else "NOT FOUND"
+        if len(used) > 1:
+            where += f" (median of {used[0]}-{used[-1]})"
         print(f"pose{k} ({entry['name']}): {where}, score {entry['score']:.3f}")
     if result.missing:
         names = ", ".join(f"pose{k} ({POSTURE_NAMES[k - 1]})" for k in result.missing)

@@ -174,14 +174,17 @@ class SkeletonChain(torch.nn.Module):
             self.chain = self.chain.to(device=self.axes.device)
         return self
 
-    def _transforms(self, joint_angles: torch.Tensor) -> torch.Tensor:
-        # (num_frames, B, 4, 4) -> segment frames (B, S, 4, 4); under forward mode the
-        # constants are lifted to zero-tangent duals (mixed dual/plain arithmetic is slow)
+    def _all_transforms(self, joint_angles: torch.Tensor) -> torch.Tensor:
+        # (num_frames, B, 4, 4); under forward mode the constants are lifted to zero-tangent
+        # duals (mixed dual/plain arithmetic is slow)
         dual = is_dual(joint_angles)
-        all_t = _forward_kinematics(
+        return _forward_kinematics(
             self.chain, joint_angles, lift(self.axes, dual), lift(self.static_offsets, dual)
         )
-        return all_t[self.frame_indices].transpose(0, 1)
+
+    def _transforms(self, joint_angles: torch.Tensor) -> torch.Tensor:
+        # segment frames (B, S, 4, 4)
+        return self._all_transforms(joint_angles)[self.frame_indices].transpose(0, 1)
 
     def _dof_structure(
         self, frames: list[str], source: str
@@ -230,11 +233,7 @@ class SkeletonChain(torch.nn.Module):
         """(B, F, 3, 3) rotation of every chain frame (segments and DOF frames) in the root
         frame."""
         check_shape("joint_angles", joint_angles, ("B", self.num_dofs))
-        dual = is_dual(joint_angles)
-        all_t = _forward_kinematics(
-            self.chain, joint_angles, lift(self.axes, dual), lift(self.static_offsets, dual)
-        )
-        return all_t[..., :3, :3].transpose(0, 1)
+        return self._all_transforms(joint_angles)[..., :3, :3].transpose(0, 1)
 
     def _segment_offsets(self, source: str) -> torch.Tensor:
         """(S, 3) origin of each segment in its parent's frame; checks it is pose-independent."""

@@ -24,6 +24,13 @@ from torchfit.errors import ModelError, check_shape
 __all__ = ["BodyModel", "BodyOutput", "axis_angle_to_matrix"]
 
 
+def _cross_matrix(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) matrices ``[v]×`` with ``[v]× w = v × w`` of vectors (..., 3)."""
+    x, y, z = v.unbind(-1)
+    zero = torch.zeros_like(x)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
+
+
 def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula, smooth at zero.
 
@@ -40,9 +47,7 @@ def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     # sin(t)/t and (1 - cos t)/t^2 with their Taylor series near 0
     a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
     b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / safe2)
-    x, y, z = rotvec.unbind(-1)
-    zero = torch.zeros_like(x)
-    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*rotvec.shape[:-1], 3, 3)
+    k = _cross_matrix(rotvec)
     eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(k)
     return eye + a * k + b * (k @ k)
 
@@ -56,18 +61,9 @@ def _left_jacobian(rotvec: torch.Tensor) -> torch.Tensor:
     theta = safe2.sqrt()
     b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / safe2)
     c = torch.where(small, 1 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (safe2 * theta))
-    x, y, z = rotvec.unbind(-1)
-    zero = torch.zeros_like(x)
-    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(-1, 3, 3)
+    k = _cross_matrix(rotvec)
     eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(k)
     return eye + b * k + c * (k @ k)
-
-
-def _cross_matrix(v: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) matrices ``[v]×`` with ``[v]× w = v × w`` of vectors (..., 3)."""
-    x, y, z = v.unbind(-1)
-    zero = torch.zeros_like(x)
-    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
 
 
 @dataclass

@@ -53,6 +53,7 @@ __all__ = [
     "SubjectScene",
     "make_subject",
     "make_subjects",
+    "outward_faces",
     "sample_phenotype",
     "subject_scene",
 ]
@@ -250,6 +251,15 @@ class SubjectScene:
     facing: float
 
 
+def outward_faces(body: Any) -> np.ndarray:
+    """The body's triangles, counter-clockwise seen from outside (outward normals): flipped
+    when the rest pose's signed volume is negative."""
+    faces = body.faces
+    v = body.pose({}).vertices
+    volume = np.einsum("ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]], v[faces[:, 2]])).sum()
+    return faces[:, ::-1].copy() if volume < 0 else faces
+
+
 def subject_scene(seed: int, index: int, cfg: SynthConfig, model: Any = None) -> SubjectScene:
     """Draw subject ``index`` of seed ``seed``: the same body, room, light and camera as
     :func:`make_subject` (which calls it), e.g. to film that body in motion."""
@@ -263,11 +273,7 @@ def subject_scene(seed: int, index: int, cfg: SynthConfig, model: Any = None) ->
         else rng.uniform(max(lo, hi - 0.4), hi)
     )
     body = body_with_height(phen, target, model)
-    faces = body.faces
-    v = body.pose({}).vertices
-    volume = np.einsum("ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]], v[faces[:, 2]])).sum()
-    if volume < 0:  # make the triangles counter-clockwise seen from outside (outward normals)
-        faces = faces[:, ::-1].copy()
+    faces = outward_faces(body)
     albedo = sample_albedo(body, rng)
     if cfg.green_screen:
         albedo = no_green(albedo)

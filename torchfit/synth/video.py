@@ -28,7 +28,7 @@ import numpy as np
 
 from torchfit.io.camera import save_camera
 from torchfit.synth.body import load_anny
-from torchfit.synth.generate import _place, _truth, _write_png, subject_scene
+from torchfit.synth.generate import _place, _truth, _write_png, outward_faces, subject_scene
 from torchfit.synth.options import SynthConfig
 from torchfit.synth.postures import POSTURES, axis_angle, perturb
 from torchfit.synth.room import Light
@@ -83,13 +83,7 @@ def make_video(
         rng = np.random.default_rng([seed, 0])
         phen, _ = sample_phenotype(rng)
         body = body_with_height(phen, rng.uniform(*cfg.height_range_m), model or load_anny())
-        faces = body.faces
-        v = body.pose({}).vertices
-        volume = np.einsum(
-            "ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]], v[faces[:, 2]])
-        ).sum()
-        if volume < 0:
-            faces = faces[:, ::-1].copy()
+        faces = outward_faces(body)
         albedo = sample_albedo(body, rng)
         azimuth = rng.uniform(0, 2 * math.pi)
         distance = rng.uniform(*cfg.camera_distance_m)

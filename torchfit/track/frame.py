@@ -234,14 +234,24 @@ class _FrameResidual:
         """The pull of the joint angles towards neutral (the twists), as a list of 0 or 1."""
         return [] if self.layout.neutral is None else [self.layout.neutral * xr[:, 6:]]
 
+    def _other_terms(
+        self, xr: torch.Tensor, world: torch.Tensor, index: torch.Tensor
+    ) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+        """The terms beside the contour's: e_T towards the prediction, the floor (the lowest
+        sole point on z = 0, soft) and the twists' pull; and, per row, the index in
+        ``self.verts`` of the lowest sole point (None without soles)."""
+        e_t = self.layout.weights * (xr - self.prediction[index])
+        if not len(self.soles):
+            return [e_t, xr[:, :1] * 0, *self._neutral(xr)], None
+        lowest = world[:, self.soles, 2].min(1, keepdim=True)
+        e_f = self.floor_weight * lowest.values
+        return [e_t, e_f, *self._neutral(xr)], self.soles[lowest.indices[:, 0]]
+
     def __call__(self, xr: torch.Tensor, index: torch.Tensor):
         p, world = _pixels(self.model, self.scales[index], self.camera[index], xr, self.verts)
         e_p, e_m = self._contour_terms(self._endpoints(p, index), index)
-        e_t = self.layout.weights * (xr - self.prediction[index])
-        # floor: the lowest sole point on the floor (z = 0), soft
-        z = world[:, self.soles, 2] if len(self.soles) else xr[:, :1] * 0
-        e_f = self.floor_weight * z.min(1, keepdim=True).values
-        return torch.cat([e_p, e_m, e_t, e_f, *self._neutral(xr)], 1), self._mask(index)
+        others, _ = self._other_terms(xr, world, index)
+        return torch.cat([e_p, e_m, *others], 1), self._mask(index)
 
     def analytic_jacobian(self, xr: torch.Tensor, index: torch.Tensor):
         """The Jacobian in one pass: the posed contour vertices' pose derivatives in closed
@@ -270,16 +280,12 @@ class _FrameResidual:
         j_p = chain("pa", self.pa[index]) + chain("pb", self.pb[index])
         j_m = chain("ma", self.ma[index]) + chain("mb", self.mb[index])
         j_t = torch.diag_embed(self.layout.weights.to(xr).expand(n, -1))
-        e_t = self.layout.weights * (xr - self.prediction[index])
-        if len(self.soles):
-            z = world[:, self.soles, 2]
-            low = self.soles[z.argmin(1)]
-            j_f = self.floor_weight * d_world[torch.arange(n), low, 2][:, None]
-            e_f = self.floor_weight * z.min(1, keepdim=True).values
-        else:
+        others, low = self._other_terms(xr, world, index)
+        if low is None:
             j_f = torch.zeros(n, 1, p_count, dtype=xr.dtype, device=xr.device)
-            e_f = xr[:, :1] * 0
-        r0 = torch.cat([e_p.detach(), e_m.detach(), e_t, e_f, *self._neutral(xr)], 1)
+        else:
+            j_f = self.floor_weight * d_world[torch.arange(n), low, 2][:, None]
+        r0 = torch.cat([e_p.detach(), e_m.detach(), *others], 1)
         jac = [j_p, j_m, j_t, j_f]
         if self.layout.neutral is not None:
             j_n = torch.zeros(n, p_count - 6, p_count, dtype=xr.dtype, device=xr.device)
