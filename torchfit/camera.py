@@ -39,6 +39,7 @@ __all__ = [
     "distort_normalized",
     "project_points",
     "projection_jacobian",
+    "project_with_jacobian",
     "look_at",
     "camera_centre",
     "ROTATION_TOLERANCE",
@@ -358,3 +359,25 @@ def projection_jacobian(points: torch.Tensor, camera: Camera) -> tuple[torch.Ten
     persp = persp.reshape(*x.shape, 2, 3)
     rot = camera.R.expand(points.shape[0], -1, -1)[:, None]  # (B, 1, 3, 3)
     return pixels, a @ persp @ rot
+
+
+def project_with_jacobian(
+    points: torch.Tensor, d_points: torch.Tensor, camera: Camera
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixels of world points and their derivatives w.r.t. parameters, by the chain rule.
+
+    Args:
+        points: (B, N, 3) world points, metres.
+        d_points: (B, N, 3, P) the points' derivatives w.r.t. P parameters.
+        camera: B cameras (or one, broadcast).
+
+    Returns:
+        (B, N, 2) pixels (as :func:`projection_jacobian`) and (B, N, 2, P) their derivatives.
+    """
+    pixels, d_pix = projection_jacobian(points, camera)
+    # a 2x3 by 3xP product per point, as three broadcast multiply-adds (a batched matmul of
+    # tiny matrices is slower, and rounds a row by its batch)
+    out = d_pix[..., 0, None] * d_points[:, :, None, 0]
+    out += d_pix[..., 1, None] * d_points[:, :, None, 1]
+    out += d_pix[..., 2, None] * d_points[:, :, None, 2]
+    return pixels, out

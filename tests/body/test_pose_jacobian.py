@@ -1,10 +1,11 @@
-"""BodyModel.pose_jacobian: the closed-form pose derivatives of posed vertices against central
-differences of the forward pass, for random poses, scales and root rotations (near zero too)."""
+"""BodyModel.pose_jacobian and BodyModel.jacobian: the closed-form pose and scale derivatives
+of posed vertices against central differences of the forward pass, for random poses, scales
+and root rotations (near zero too)."""
 
 import pytest
 import torch
 
-from torchfit.body.model import BodyModel
+from torchfit.body.model import BodyModel, axis_angle_to_matrix
 
 
 @pytest.fixture(scope="module")
@@ -57,3 +58,56 @@ def test_a_joint_moves_only_what_hangs_below_it(model):
     names = model.template.segments
     below = torch.tensor([names[s] in ("l_calf", "l_hindfoot") for s in seg.tolist()])
     assert torch.equal(moved, below)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_scale_and_joint_jacobian_matches_central_differences(model, seed):
+    """BodyModel.jacobian: every segment's three scales and every joint angle, with the root
+    rotation held (a matrix), against central differences of the forward pass."""
+    scales, q, t, r = _random_pose(model, 2, seed=seed, root_angle=0.8)
+    rot = axis_angle_to_matrix(r)
+    g = torch.Generator().manual_seed(seed)
+    index = torch.randperm(model.template.vertices.shape[0], generator=g)[:300]
+    out, d_scales, d_joints = model.jacobian(scales, q, t, rot, index)
+    s = model.num_segments
+    assert d_scales.shape == (2, 300, 3, s, 3) and d_joints.shape == (2, 300, 3, model.num_dofs)
+    torch.testing.assert_close(out.vertices, model(scales, q, t, r, index).vertices)
+
+    def pose(sc, qq):
+        return model(sc, qq, t, rot, index).vertices
+
+    h = 1e-6
+    for seg in range(s):
+        for a in range(3):
+            step = torch.zeros_like(scales)
+            step[:, seg, a] = h
+            fd = (pose(scales + step, q) - pose(scales - step, q)) / (2 * h)
+            torch.testing.assert_close(d_scales[..., seg, a], fd, atol=1e-7, rtol=0)
+    for k in range(model.num_dofs):
+        step = torch.zeros_like(q)
+        step[:, k] = h
+        fd = (pose(scales, q + step) - pose(scales, q - step)) / (2 * h)
+        torch.testing.assert_close(d_joints[..., k], fd, atol=1e-7, rtol=0)
+
+
+def test_a_scale_moves_only_its_segment_and_what_hangs_below_it(model):
+    scales, q, t, r = _random_pose(model, 1, seed=7, root_angle=0.3)
+    index = torch.arange(model.template.vertices.shape[0])
+    _, d_scales, _ = model.jacobian(scales, q, t, axis_angle_to_matrix(r), index)
+    names = model.template.segments
+    thigh = names.index("l_thigh")
+    moved = d_scales[0, :, :, thigh].abs().amax((-1, -2)) > 0
+    seg = model.template.vertex_segment
+    below = {thigh} | {s for s in range(len(names)) if _has_ancestor(model, s, thigh)}
+    expected = torch.tensor([int(s) in below for s in seg.tolist()])
+    assert torch.equal(moved, expected)
+    assert expected.sum() < len(expected) // 3  # the leg only, not the body
+
+
+def _has_ancestor(model, s: int, a: int) -> bool:
+    parents = model.template.parents
+    while parents[s] >= 0:
+        s = int(parents[s])
+        if s == a:
+            return True
+    return False

@@ -143,6 +143,18 @@ class BodyModel(torch.nn.Module):
             segs, pars = zip(*pairs, strict=True)
             self.register_buffer(f"_level{d}", torch.tensor(segs), persistent=False)
             self.register_buffer(f"_level{d}_parents", torch.tensor(pars), persistent=False)
+        # scale levers: a point of segment s moves with segment s''s scale σ_a along its frame's
+        # axis a by its own local coordinate, and with an ancestor a''s scale by the offset of
+        # the next segment down the path to s (see :meth:`jacobian`); (S, S, 3) per segment
+        # pair, the segment itself filled per vertex
+        levers = torch.zeros(t.num_segments, t.num_segments, 3, dtype=torch.float64)
+        offsets = self.chain.offsets.to(torch.float64)
+        for s in range(t.num_segments):
+            child, par = s, int(t.parents[s])
+            while par >= 0:
+                levers[s, par] = offsets[child]
+                child, par = par, int(t.parents[par])
+        self.register_buffer("_levers", levers, persistent=False)
         self.to(device=device, dtype=dtype)
 
     # ----------------------------------------------------------------------------------------
@@ -284,6 +296,27 @@ class BodyModel(torch.nn.Module):
         vertices = posed.reshape(posed.shape[0], -1, 3)[:, self._flat_index]
         return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
 
+    def _turns(
+        self,
+        rot_root: torch.Tensor,
+        frames: torch.Tensor,
+        out: BodyOutput,
+        seg: torch.Tensor,
+    ) -> torch.Tensor:
+        """(B, Q, 3, K) ``∂p/∂q_k = a_k × (p − c_k)`` of posed points ``out.vertices`` (B, K, 3)
+        of segments ``seg`` (K,), zero where DOF k does not move the point."""
+        chain = self.chain
+        p = out.vertices
+        dof_rot = rot_root[:, None] @ frames[:, chain.dof_frames]  # (B, Q, 3, 3)
+        axes = (dof_rot @ chain.axes[..., None])[..., 0]  # (B, Q, 3) world axes
+        pivots = out.origins[:, chain.dof_pivot]  # (B, Q, 3)
+        moves = chain.dof_moves[:, seg].to(p.dtype)  # (Q, K)
+        # elementwise for every DOF and point (a batched product would round a row by its
+        # batch)
+        rel = p[:, None] - pivots[:, :, None]  # (B, Q, K, 3)
+        turn = torch.linalg.cross(axes[:, :, None].expand_as(rel), rel)
+        return (turn * moves[..., None]).transpose(2, 3)
+
     def pose_jacobian(
         self,
         scales: torch.Tensor,
@@ -320,24 +353,61 @@ class BodyModel(torch.nn.Module):
         out = self._posed(scales, rot, root_translation, vertex_index, False)
         p = out.vertices  # (B, K, 3)
         b, k = p.shape[:2]
-        dof_rot = rot_root[:, None] @ frames[:, chain.dof_frames]  # (B, Q, 3, 3)
-        axes = (dof_rot @ chain.axes[..., None])[..., 0]  # (B, Q, 3) world axes
-        pivots = out.origins[:, chain.dof_pivot]  # (B, Q, 3)
         seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
-        moves = chain.dof_moves[:, seg].to(p.dtype)  # (Q, K)
-        q = axes.shape[1]
+        q = self.num_dofs
         jac = torch.zeros(b, 3, 6 + q, k, dtype=p.dtype, device=p.device)
         jac[:, [0, 1, 2], [0, 1, 2]] = 1.0
-        # a × (p − c) = [a]× p − a × c, for every DOF and vertex in one batched product
-        turn = (_cross_matrix(axes).reshape(b, 3 * q, 3) @ p.transpose(1, 2)).reshape(b, q, 3, k)
-        turn = turn - torch.linalg.cross(axes, pivots)[..., None]  # (B, Q, 3, K)
-        jac[:, :, 6:] = (turn * moves[:, None]).transpose(1, 2)
+        jac[:, :, 6:] = self._turns(rot_root, frames, out, seg).transpose(1, 2)
         # root rotation: column c is J_l[:, c] × (p − t)
         left = _left_jacobian(root_rotation)  # (B, 3, 3)
         rel = (p - root_translation[:, None]).transpose(1, 2)  # (B, 3, K)
         cols = _cross_matrix(left.transpose(1, 2))  # (B, 3, 3, 3): [J_l[:, c]]×
         jac[:, :, 3:6] = (cols @ rel[:, None]).transpose(1, 2)
         return p, jac.permute(0, 3, 1, 2)
+
+    def jacobian(
+        self,
+        scales: torch.Tensor,
+        joint_angles: torch.Tensor,
+        root_translation: torch.Tensor,
+        root_rotation: torch.Tensor,
+        vertex_index: torch.Tensor,
+    ) -> tuple[BodyOutput, torch.Tensor, torch.Tensor]:
+        """Posed vertices and their derivatives w.r.t. the segment scales and the joint angles,
+        in closed form (the root held; a caller adds its own root parametrisation, which turns
+        every point about the root origin).
+
+        A point of segment s is ``p = o_s + R_s (σ_s ⊙ v)``, and each ancestor a adds
+        ``R_a (σ_a ⊙ o_c)`` to ``o_s``, with ``o_c`` the template offset of the next segment c
+        on the path down to s. So ``∂p/∂σ_{a,i} = R_a[:, i] w_i``, the lever ``w`` being
+        ``v`` for s itself, ``o_c`` for an ancestor, and 0 otherwise; and
+        ``∂p/∂q_k = a_k × (p − c_k)`` as in :meth:`pose_jacobian`. Every product is
+        elementwise or a fixed-size small matrix product per row, so a row's numbers do not
+        depend on the batch around it.
+
+        Args:
+            scales, joint_angles, root_translation: as :meth:`forward`.
+            root_rotation: (B, 3, 3) root rotation matrices.
+            vertex_index: (K,) template vertices to pose.
+
+        Returns:
+            the posed body (vertices (B, K, 3)), ``∂p/∂σ`` (B, K, 3, S, 3) w.r.t. each
+            segment's three scales, and ``∂p/∂q`` (B, K, 3, Q).
+        """
+        check_shape("scales", scales, ("B", self.num_segments, 3))
+        check_shape("root_rotation", root_rotation, ("B", 3, 3))
+        chain = self.chain
+        frames = chain.frame_rotations(joint_angles)  # (B, F, 3, 3), one kinematics pass
+        rot = root_rotation[:, None] @ frames[:, chain.frame_indices]  # (B, S, 3, 3)
+        out = self._posed(scales, rot, root_translation, vertex_index, False)
+        seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
+        k = seg.numel()
+        levers = self._levers[seg]  # (K, S, 3)
+        levers[torch.arange(k, device=seg.device), seg] = self._vertices[vertex_index]
+        # (B, 1, 3, S, 3) columns of R_a times (1, K, 1, S, 3) levers
+        d_scales = rot.permute(0, 2, 1, 3)[:, None] * levers[None, :, None]
+        d_joints = self._turns(root_rotation, frames, out, seg).permute(0, 3, 2, 1)
+        return out, d_scales, d_joints
 
     def joint_positions(self, out: BodyOutput) -> dict[str, torch.Tensor]:
         """Named joint centres (design.md section 3 names) of a posed body.

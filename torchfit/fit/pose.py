@@ -159,3 +159,72 @@ class Poser:
         zero = torch.zeros_like(floor)
         lift_z = torch.stack([zero, zero, floor], -1)[:, None]
         return verts[:, :-2] - lift_z, out.origins - lift_z
+
+    def columns(self, j: int) -> torch.Tensor:
+        """(C_j,) the parameter columns posture j depends on, in the order of
+        :meth:`world_jacobian`'s derivatives: every scale, then the posture's block."""
+        block = self.layout.blocks[j]
+        scales = torch.arange(self.layout.num_scale_params)
+        return torch.cat([scales, torch.arange(block.start, block.columns.stop)])
+
+    def world_jacobian(
+        self,
+        full: torch.Tensor,
+        j: int,
+        rows: torch.Tensor,
+        vertex_index: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posed, floor-standing vertices of posture j and their derivatives, in closed form.
+
+        The model gives the derivatives w.r.t. each segment's scales and each joint angle
+        (:meth:`BodyModel.jacobian`); a scale group's column is the sum over its segments.
+        The root ``Rz(ψ) Ry(θ) Rx(φ)`` turns every point about the root origin ``t``: yaw
+        about ``e_z``, pitch about ``Rz e_y`` and roll about ``R e_x``, so each column is
+        ``axis × (p − t)``; ``tx`` and ``ty`` move every point along ``e_x`` and ``e_y``.
+        Floor contact subtracts the lower sole's height, and with it its derivative (the
+        mean of both soles' at a tie, as forward-mode AD of ``torch.minimum`` gives it).
+
+        Args:
+            full: (N, P) parameters (plain tensors).
+            j: the posture.
+            rows: (N,) subject index of each row.
+            vertex_index: (K,) template vertices to pose.
+
+        Returns:
+            (N, K, 3) vertices, as :meth:`world` gives them, and (N, K, 3, C_j) their
+            derivatives w.r.t. the columns :meth:`columns` names.
+        """
+        m = self.model
+        scales, angles, rot, trans = self.state(full, j, rows)
+        soles = torch.tensor(self.soles, device=full.device)
+        idx = torch.cat([vertex_index, soles])
+        out, d_seg, d_q = m.jacobian(scales, angles, trans, rot, idx)
+        p = out.vertices
+        n, k = p.shape[:2]
+        group = m.template.segment_group.to(full.device)
+        d_group = torch.zeros(n, k, 3, m.num_groups, 3, dtype=p.dtype, device=p.device)
+        d_group.index_add_(3, group, d_seg)
+        block = self.layout.blocks[j]
+        d_joints = d_q[..., list(block.dofs)]
+        # the root: tx, ty, yaw, roll, pitch
+        rel = p - trans[:, None]
+        psi = self.base_yaw[j][rows] + full[:, block.root_column("yaw")]
+        zero = torch.zeros_like(psi)
+        pitch_axis = torch.stack([-psi.sin(), psi.cos(), zero], -1)
+        axes = torch.stack([torch.stack([zero, zero, zero + 1], -1), rot[..., 0], pitch_axis], 1)
+        turn = torch.linalg.cross(axes[:, None].expand(-1, k, -1, -1), rel[:, :, None])
+        move = torch.zeros(n, k, 3, 2, dtype=p.dtype, device=p.device)
+        move[:, :, 0, 0] = 1.0
+        move[:, :, 1, 1] = 1.0
+        d_root = torch.cat([move, turn.transpose(2, 3)], -1)  # tx, ty, yaw, roll, pitch
+        d = torch.cat([d_group.reshape(n, k, 3, -1), d_joints, d_root], -1)
+        # floor contact
+        zl, zr = p[:, -2, 2], p[:, -1, 2]
+        wl = (zl < zr).to(p) + 0.5 * (zl == zr).to(p)
+        d_floor = wl[:, None] * d[:, -2, 2] + (1 - wl[:, None]) * d[:, -1, 2]  # (N, C_j)
+        floor = torch.minimum(zl, zr)
+        world = p[:, :-2].clone()
+        world[..., 2] -= floor[:, None]
+        d_world = d[:, :-2].clone()
+        d_world[:, :, 2] -= d_floor[:, None]
+        return world, d_world

@@ -5,10 +5,11 @@ and e_M per posture, then e_B per parameter; :mod:`torchfit.fit.layout` owns whe
 and their Jacobian.
 
 The Jacobian is computed with the discrete contour choice made once per evaluation point. Per
-posture, forward mode gives the pixel tangents of the contour vertices for the parameters that
-posture depends on (the scales and its own parameters), folded into the batch dimension, and
-reverse mode the derivative of every residual entry w.r.t. the pixels of its own edge
-endpoints; their product is the posture's block.
+posture, the contour vertices' pixel derivatives w.r.t. the parameters that posture depends on
+(the scales and its own parameters) are in closed form (:meth:`torchfit.fit.pose.Poser.
+world_jacobian` through :func:`torchfit.camera.project_with_jacobian`), and reverse mode gives
+the derivative of every residual entry w.r.t. the pixels of its own edge endpoints; their
+product is the posture's block.
 """
 
 from __future__ import annotations
@@ -16,10 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.autograd.forward_ad as fwad
 
 from torchfit.body.model import BodyModel
-from torchfit.camera import camera_centre, project_points
+from torchfit.camera import camera_centre, project_points, project_with_jacobian
 from torchfit.errors import ConfigError
 from torchfit.fit.layout import JointBounds, ParamLayout
 from torchfit.fit.model_contour import (
@@ -367,11 +367,11 @@ class SilhouetteFit:
         ``full`` (N, P) are parameter rows of the subjects ``rows`` (N,) (default: row i is
         subject i), ``selections`` their contour choice.
 
-        Per pose, two autograd passes meet at the projected contour vertices:
+        Per pose, two derivatives meet at the projected contour vertices:
 
-        - forward mode gives the pixel tangents of the vertices that carry contour samples,
-          for the tangents this pose depends on (the scales and its own parameters), folded
-          into the batch dimension;
+        - the pixel derivatives of the vertices that carry contour samples w.r.t. the
+          parameters this pose depends on (the scales and its own parameters), in closed form
+          (:meth:`torchfit.fit.pose.Poser.world_jacobian`, then the projection's);
         - reverse mode gives the derivative of every residual entry w.r.t. the pixels of its
           own edge endpoints (each e_P entry depends on one edge, e_M on the sample edges).
 
@@ -394,15 +394,14 @@ class SilhouetteFit:
             if c == 0:
                 continue
             ends, vidx, lookup = self._prepare(sel)
-            # forward mode: pixel tangents of the contour vertices, c directions per subject;
-            # the pixels themselves are the primal of its first direction (no second pass)
-            rows_rep = rows.repeat_interleave(c)
-            tangent = torch.zeros(b * c, full.shape[1], **self.kw)
-            tangent[torch.arange(b * c), free[cols].repeat(b)] = 1.0
-            with fwad.dual_level():
-                dual = fwad.make_dual(full.repeat_interleave(c, dim=0), tangent)
-                primal, tan = fwad.unpack_dual(self.pose_pixels(dual, j, rows_rep, vidx))
-            pixels = primal[::c]
+            # closed form: the contour vertices' pixels and their derivatives w.r.t. the
+            # posture's columns, of which the free ones are kept
+            world, d_world = self.poser.world_jacobian(full, j, rows, vidx)
+            local_cols = torch.searchsorted(self.poser.columns(j).to(free.device), free[cols])
+            pixels, d_pix = project_with_jacobian(
+                world, d_world[..., local_cols], self.camera[rows]
+            )
+            tan = d_pix.transpose(2, 3)  # (B, K, c, 2)
             # reverse mode: local derivatives of the residual entries w.r.t. endpoint pixels
             pix = {
                 n: v.detach().requires_grad_(True)
@@ -417,7 +416,6 @@ class SilhouetteFit:
                 n: (g if g is not None else torch.zeros_like(pix[n]))
                 for n, g in zip(pix, grads, strict=True)
             }
-            tan = tan.reshape(b, c, -1, 2).permute(0, 2, 1, 3)  # (B, K, c, 2)
             r = at[:, None]
             t_of = {
                 n: tan[r, lookup[getattr(ends, attr)]]

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import torch
 
 from torchfit.body.model import BodyModel
-from torchfit.camera import Camera, project_points, projection_jacobian
+from torchfit.camera import Camera, project_points, project_with_jacobian
 from torchfit.fit.model_contour import (
     EdgeSampler,
     contour_endpoints,
@@ -154,18 +154,6 @@ class FrameResult:
     iterations: torch.Tensor
 
 
-def _project_with_jacobian(world: torch.Tensor, d_world: torch.Tensor, camera: Camera):
-    """Pixels (N, K, 2) of world points (N, K, 3) and their Jacobian (N, K, 2, P) from the
-    points' (N, K, 3, P), through the projection's closed-form derivative."""
-    pixels, d_pix = projection_jacobian(world, camera)
-    # a 2x3 by 3xP product per point, as three broadcast multiply-adds (a batched matmul of
-    # tiny matrices is slower)
-    out = d_pix[..., 0, None] * d_world[:, :, None, 0]
-    out += d_pix[..., 1, None] * d_world[:, :, None, 1]
-    out += d_pix[..., 2, None] * d_world[:, :, None, 2]
-    return pixels, out
-
-
 def _pixels(model, scales, camera, x, vertex_index):
     t, r, q = PoseLayout.split(x)
     out = model(scales, q, t, r, vertex_index=vertex_index)
@@ -260,7 +248,7 @@ class _FrameResidual:
         n, p_count = xr.shape
         t, r, q = PoseLayout.split(xr)
         world, d_world = self.model.pose_jacobian(self.scales[index], q, t, r, self.verts)
-        pix, d_pix = _project_with_jacobian(world, d_world, self.camera[index])
+        pix, d_pix = project_with_jacobian(world, d_world, self.camera[index])
         ends = {k: v.detach().requires_grad_(True) for k, v in self._endpoints(pix, index).items()}
         with torch.enable_grad():
             e_p, e_m = self._contour_terms(ends, index)
