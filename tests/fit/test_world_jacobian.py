@@ -43,7 +43,9 @@ def test_world_jacobian_matches_central_differences(model, posture):
         plus, minus = x.clone(), x.clone()
         plus[:, c] += h
         minus[:, c] -= h
-        fd = poser.world(plus, posture, rows, index)[0] - poser.world(minus, posture, rows, index)[0]
+        fd = (
+            poser.world(plus, posture, rows, index)[0] - poser.world(minus, posture, rows, index)[0]
+        )
         torch.testing.assert_close(d_world[..., i], fd / (2 * h), atol=1e-7, rtol=0)
 
 
