@@ -143,18 +143,29 @@ class BodyModel(torch.nn.Module):
             segs, pars = zip(*pairs, strict=True)
             self.register_buffer(f"_level{d}", torch.tensor(segs), persistent=False)
             self.register_buffer(f"_level{d}_parents", torch.tensor(pars), persistent=False)
-        # scale levers: a point of segment s moves with segment s''s scale σ_a along its frame's
-        # axis a by its own local coordinate, and with an ancestor a''s scale by the offset of
-        # the next segment down the path to s (see :meth:`jacobian`); (S, S, 3) per segment
-        # pair, the segment itself filled per vertex
-        levers = torch.zeros(t.num_segments, t.num_segments, 3, dtype=torch.float64)
+        # scale levers: a point of segment s moves with segment s's scale σ_i along its frame's
+        # axis i by its own local coordinate, and with an ancestor a's scale by the offset of
+        # the next segment down the path to s (see :meth:`jacobian`). Per segment, the path
+        # up to the root (itself first, padded with itself and a zero lever): ``_path`` (S, D)
+        # and ``_path_levers`` (S, D, 3), slot 0 filled per vertex
+        paths: list[list[int]] = []
+        path_levers = []
         offsets = self.chain.offsets.to(torch.float64)
         for s in range(t.num_segments):
+            path, levers = [s], [torch.zeros(3, dtype=torch.float64)]
             child, par = s, int(t.parents[s])
             while par >= 0:
-                levers[s, par] = offsets[child]
+                path.append(par)
+                levers.append(offsets[child])
                 child, par = par, int(t.parents[par])
-        self.register_buffer("_levers", levers, persistent=False)
+            paths.append(path)
+            path_levers.append(levers)
+        depth = max(len(p) for p in paths)
+        path_t = torch.tensor([p + [p[0]] * (depth - len(p)) for p in paths])
+        zero = torch.zeros(3, dtype=torch.float64)
+        lever_t = torch.stack([torch.stack(lv + [zero] * (depth - len(lv))) for lv in path_levers])
+        self.register_buffer("_path", path_t, persistent=False)
+        self.register_buffer("_path_levers", lever_t, persistent=False)
         self.to(device=device, dtype=dtype)
 
     # ----------------------------------------------------------------------------------------
@@ -302,18 +313,25 @@ class BodyModel(torch.nn.Module):
         frames: torch.Tensor,
         out: BodyOutput,
         seg: torch.Tensor,
+        dofs: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """(B, Q, 3, K) ``∂p/∂q_k = a_k × (p − c_k)`` of posed points ``out.vertices`` (B, K, 3)
-        of segments ``seg`` (K,), zero where DOF k does not move the point."""
+        """(B, Q', 3, K) ``∂p/∂q_k = a_k × (p − c_k)`` of posed points ``out.vertices`` (B, K, 3)
+        of segments ``seg`` (K,) for the DOFs ``dofs`` (Q',) (default: all), zero where DOF k
+        does not move the point."""
         chain = self.chain
         p = out.vertices
-        dof_rot = rot_root[:, None] @ frames[:, chain.dof_frames]  # (B, Q, 3, 3)
-        axes = (dof_rot @ chain.axes[..., None])[..., 0]  # (B, Q, 3) world axes
-        pivots = out.origins[:, chain.dof_pivot]  # (B, Q, 3)
-        moves = chain.dof_moves[:, seg].to(p.dtype)  # (Q, K)
+        dof_frames, dof_axes = chain.dof_frames, chain.axes
+        dof_pivot, dof_moves = chain.dof_pivot, chain.dof_moves
+        if dofs is not None:
+            dof_frames, dof_axes = dof_frames[dofs], dof_axes[dofs]
+            dof_pivot, dof_moves = dof_pivot[dofs], dof_moves[dofs]
+        dof_rot = rot_root[:, None] @ frames[:, dof_frames]  # (B, Q', 3, 3)
+        axes = (dof_rot @ dof_axes[..., None])[..., 0]  # (B, Q', 3) world axes
+        pivots = out.origins[:, dof_pivot]  # (B, Q', 3)
+        moves = dof_moves[:, seg].to(p.dtype)  # (Q', K)
         # elementwise for every DOF and point (a batched product would round a row by its
         # batch)
-        rel = p[:, None] - pivots[:, :, None]  # (B, Q, K, 3)
+        rel = p[:, None] - pivots[:, :, None]  # (B, Q', K, 3)
         turn = torch.linalg.cross(axes[:, :, None].expand_as(rel), rel)
         return (turn * moves[..., None]).transpose(2, 3)
 
@@ -372,9 +390,11 @@ class BodyModel(torch.nn.Module):
         root_translation: torch.Tensor,
         root_rotation: torch.Tensor,
         vertex_index: torch.Tensor,
+        dofs: torch.Tensor | None = None,
+        groups: torch.Tensor | None = None,
     ) -> tuple[BodyOutput, torch.Tensor, torch.Tensor]:
-        """Posed vertices and their derivatives w.r.t. the segment scales and the joint angles,
-        in closed form (the root held; a caller adds its own root parametrisation, which turns
+        """Posed vertices and their derivatives w.r.t. the scales and the joint angles, in
+        closed form (the root held; a caller adds its own root parametrisation, which turns
         every point about the root origin).
 
         A point of segment s is ``p = o_s + R_s (σ_s ⊙ v)``, and each ancestor a adds
@@ -382,17 +402,21 @@ class BodyModel(torch.nn.Module):
         on the path down to s. So ``∂p/∂σ_{a,i} = R_a[:, i] w_i``, the lever ``w`` being
         ``v`` for s itself, ``o_c`` for an ancestor, and 0 otherwise; and
         ``∂p/∂q_k = a_k × (p − c_k)`` as in :meth:`pose_jacobian`. Every product is
-        elementwise or a fixed-size small matrix product per row, so a row's numbers do not
-        depend on the batch around it.
+        elementwise or a fixed-size small matrix product per row, and the sums over the
+        segments of a group run in a fixed order, so a row's numbers do not depend on the
+        batch around it.
 
         Args:
             scales, joint_angles, root_translation: as :meth:`forward`.
             root_rotation: (B, 3, 3) root rotation matrices.
             vertex_index: (K,) template vertices to pose.
+            dofs: (Q',) the joint DOFs wanted (default: all Q).
+            groups: (S,) the scale group of each segment, G groups (the derivative w.r.t. a
+                group's scale sums its segments'; default: each segment its own group).
 
         Returns:
-            the posed body (vertices (B, K, 3)), ``∂p/∂σ`` (B, K, 3, S, 3) w.r.t. each
-            segment's three scales, and ``∂p/∂q`` (B, K, 3, Q).
+            the posed body (vertices (B, K, 3)), ``∂p/∂σ`` (B, K, 3, G, 3) w.r.t. each group's
+            three scales, and ``∂p/∂q`` (B, K, 3, Q').
         """
         check_shape("scales", scales, ("B", self.num_segments, 3))
         check_shape("root_rotation", root_rotation, ("B", 3, 3))
@@ -401,13 +425,22 @@ class BodyModel(torch.nn.Module):
         rot = root_rotation[:, None] @ frames[:, chain.frame_indices]  # (B, S, 3, 3)
         out = self._posed(scales, rot, root_translation, vertex_index, False)
         seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
-        k = seg.numel()
-        levers = self._levers[seg]  # (K, S, 3)
-        levers[torch.arange(k, device=seg.device), seg] = self._vertices[vertex_index]
-        # (B, 1, 3, S, 3) columns of R_a times (1, K, 1, S, 3) levers
-        d_scales = rot.permute(0, 2, 1, 3)[:, None] * levers[None, :, None]
-        d_joints = self._turns(root_rotation, frames, out, seg).permute(0, 3, 2, 1)
-        return out, d_scales, d_joints
+        b, k = out.vertices.shape[:2]
+        path = self._path[seg]  # (K, D): the segment, its parent, ... (padded)
+        levers = self._path_levers[seg]  # (K, D, 3)
+        levers[:, 0] = self._vertices[vertex_index]
+        if groups is None:
+            groups = torch.arange(self.num_segments, device=seg.device)
+        g = int(groups.max()) + 1
+        d = path.shape[1]
+        # (B, K, D, 3, 3): R_a[:, i] w_i along each point's path, then summed into its groups
+        along = rot[:, path] * levers[None, :, :, None, :]
+        target = (groups[path][..., None] * 3 + torch.arange(3, device=seg.device)).reshape(k, -1)
+        d_scales = torch.zeros(b, k, 3, g * 3, dtype=along.dtype, device=along.device)
+        src = along.permute(0, 1, 3, 2, 4).reshape(b, k, 3, d * 3)
+        d_scales.scatter_add_(3, target[None, :, None].expand(b, -1, 3, -1), src)
+        d_joints = self._turns(root_rotation, frames, out, seg, dofs).permute(0, 3, 2, 1)
+        return out, d_scales.reshape(b, k, 3, g, 3), d_joints
 
     def joint_positions(self, out: BodyOutput) -> dict[str, torch.Tensor]:
         """Named joint centres (design.md section 3 names) of a posed body.

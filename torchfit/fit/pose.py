@@ -198,14 +198,12 @@ class Poser:
         scales, angles, rot, trans = self.state(full, j, rows)
         soles = torch.tensor(self.soles, device=full.device)
         idx = torch.cat([vertex_index, soles])
-        out, d_seg, d_q = m.jacobian(scales, angles, trans, rot, idx)
+        block = self.layout.blocks[j]
+        dofs = torch.tensor(block.dofs, dtype=torch.long, device=full.device)
+        group = m.template.segment_group.to(full.device)
+        out, d_group, d_joints = m.jacobian(scales, angles, trans, rot, idx, dofs, group)
         p = out.vertices
         n, k = p.shape[:2]
-        group = m.template.segment_group.to(full.device)
-        d_group = torch.zeros(n, k, 3, m.num_groups, 3, dtype=p.dtype, device=p.device)
-        d_group.index_add_(3, group, d_seg)
-        block = self.layout.blocks[j]
-        d_joints = d_q[..., list(block.dofs)]
         # the root: tx, ty, yaw, roll, pitch
         rel = p - trans[:, None]
         psi = self.base_yaw[j][rows] + full[:, block.root_column("yaw")]

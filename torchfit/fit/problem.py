@@ -250,12 +250,7 @@ class SilhouetteFit:
         self, pixels: torch.Tensor, lookup: torch.Tensor, ends: ContourEndpoints
     ) -> dict[str, torch.Tensor]:
         r = torch.arange(pixels.shape[0], device=pixels.device)[:, None]
-        return {
-            "pa": pixels[r, lookup[ends.person_a]],
-            "pb": pixels[r, lookup[ends.person_b]],
-            "ma": pixels[r, lookup[ends.model_a]],
-            "mb": pixels[r, lookup[ends.model_b]],
-        }
+        return {n: pixels[r, lookup[getattr(ends, a)]] for n, a in _ENDPOINTS.items()}
 
     def _prepare(
         self, sel: ContourSelection
@@ -401,7 +396,8 @@ class SilhouetteFit:
             pixels, d_pix = project_with_jacobian(
                 world, d_world[..., local_cols], self.camera[rows]
             )
-            tan = d_pix.transpose(2, 3)  # (B, K, c, 2)
+            # (B K, 2, c): each vertex's pixel derivatives as one contiguous row
+            flat = d_pix.reshape(-1, 2, c)
             # reverse mode: local derivatives of the residual entries w.r.t. endpoint pixels
             pix = {
                 n: v.detach().requires_grad_(True)
@@ -416,24 +412,24 @@ class SilhouetteFit:
                 n: (g if g is not None else torch.zeros_like(pix[n]))
                 for n, g in zip(pix, grads, strict=True)
             }
-            r = at[:, None]
-            t_of = {
-                n: tan[r, lookup[getattr(ends, attr)]]
-                for n, attr in (
-                    ("pa", "person_a"),
-                    ("pb", "person_b"),
-                    ("ma", "model_a"),
-                    ("mb", "model_b"),
-                )
-            }
+            # each entry's endpoint as a row of ``flat``
+            first = (at * pixels.shape[1])[:, None]
+            at_row = {n: first + lookup[getattr(ends, a)] for n, a in _ENDPOINTS.items()}
             # Products and sums written out, not einsum (batched products round a subject's
             # row by batch size); the model-contour sum ignores padding (padded_row_sum).
-            block_p = _dot2(local["pa"], t_of["pa"]) + _dot2(local["pb"], t_of["pb"])
-            per_point = _dot2(local["ma"], t_of["ma"]) + _dot2(local["mb"], t_of["mb"])
+            block_p = _chain(local["pa"], flat, at_row["pa"]) + _chain(
+                local["pb"], flat, at_row["pb"]
+            )
+            per_point = _chain(local["ma"], flat, at_row["ma"]) + _chain(
+                local["mb"], flat, at_row["mb"]
+            )
             block_m = padded_row_sum(per_point.transpose(1, 2))
             weight = self.pose_weights[rows][:, k, None]
-            jac[:, rl.e_p(j), cols] = block_p * weight[:, :, None]
-            jac[:, rl.e_m(j), cols] = block_m * weight
+            # the scale columns and the posture's own are two runs of consecutive columns
+            e_p_rows, e_m_row = rl.e_p(j), rl.e_m(j)
+            for run, part in _runs(cols, block_p * weight[:, :, None], block_m * weight):
+                jac[:, e_p_rows, run] = part[0]
+                jac[:, e_m_row, run] = part[1]
         # barrier: elementwise, derivative weight * (-1 below, +1 above, 0 inside)
         x = full[:, free]
         lo, hi = self.lower[free], self.upper[free]
@@ -442,7 +438,24 @@ class SilhouetteFit:
         return jac
 
 
-def _dot2(local: torch.Tensor, tangent: torch.Tensor) -> torch.Tensor:
-    """(B, n, 2) pixel derivatives times (B, n, c, 2) pixel tangents -> (B, n, c)."""
-    prod = local[:, :, None, :] * tangent
-    return prod[..., 0] + prod[..., 1]
+#: The endpoint pixels of a residual entry and the ContourEndpoints field naming their vertex.
+_ENDPOINTS = {"pa": "person_a", "pb": "person_b", "ma": "model_a", "mb": "model_b"}
+
+
+def _chain(local: torch.Tensor, flat: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """(B, n, c): each entry's derivative w.r.t. its endpoint pixel (B, n, 2) times that
+    endpoint's pixel tangents, rows ``index`` (B, n) of ``flat`` (B K, 2, c)."""
+    tangents = flat.index_select(0, index.flatten()).reshape(*index.shape, 2, -1)
+    return local[..., 0, None] * tangents[:, :, 0] + local[..., 1, None] * tangents[:, :, 1]
+
+
+def _runs(cols: torch.Tensor, block_p: torch.Tensor, block_m: torch.Tensor):
+    """Split the columns ``cols`` (c,) into runs of consecutive values: yields (slice of the
+    Jacobian's columns, (block_p[..., part], block_m[..., part])) per run."""
+    values = cols.tolist()
+    start = 0
+    for i in range(1, len(values) + 1):
+        if i == len(values) or values[i] != values[i - 1] + 1:
+            part = slice(start, i)
+            yield slice(values[start], values[i - 1] + 1), (block_p[..., part], block_m[..., part])
+            start = i
