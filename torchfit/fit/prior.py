@@ -292,6 +292,16 @@ class PriorFit(SilhouetteFit):
         extra = self.residual_layout.num_prior + self.residual_layout.num_facts
         return torch.cat([base, base.new_ones(self.batch, extra)], 1)
 
+    def jacobian_blocks(self, free: torch.Tensor) -> list[tuple[slice, torch.Tensor]]:
+        """As :meth:`SilhouetteFit.jacobian_blocks`, with e_S and e_H on the scales."""
+        rl = self.residual_layout
+        out = super().jacobian_blocks(free)
+        scale = (free < self.layout.num_scale_params).nonzero().flatten()
+        for rows in (rl.prior, rl.facts):
+            if rows.stop > rows.start:
+                out.append((rows, scale))
+        return out
+
     def jacobian(self, full, free, selections, rows=None) -> torch.Tensor:
         """(N, M, F): :meth:`SilhouetteFit.jacobian` with the e_S and e_H rows filled in."""
         if rows is None:

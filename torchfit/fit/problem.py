@@ -349,6 +349,19 @@ class SilhouetteFit:
         parts.append(self.barrier_residual(full))
         return torch.cat(parts, 1)
 
+    def jacobian_blocks(self, free: torch.Tensor) -> list[tuple[slice, torch.Tensor]]:
+        """The Jacobian's sparsity w.r.t. the ``free`` (F,) parameters (for the solver's
+        normal equations): posture j's e_P and e_M entries depend on the scales and on its
+        own parameters only (positions in ``free``); the barrier rows are left dense."""
+        rl = self.residual_layout
+        scale = (free < self.layout.num_scale_params).nonzero().flatten()
+        out = []
+        for j in self.poses:
+            sl = self.layout.blocks[j].columns
+            own = ((free >= sl.start) & (free < sl.stop)).nonzero().flatten()
+            out.append((rl.block(j), torch.cat([scale, own])))
+        return out
+
     # ------------------------------------------------------------------------------------
     def jacobian(
         self,

@@ -148,6 +148,7 @@ def solve_stage(
         callback=callback,
         indexed=True,
         loss_units=fit.loss_units().to(solver_dtype),
+        jacobian_blocks=fit.jacobian_blocks(free),
     )
     out = full.detach().clone()
     out[:, free] = result.x.to(out.dtype)

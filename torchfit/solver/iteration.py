@@ -8,7 +8,7 @@ from collections.abc import Callable
 import torch
 
 from torchfit.solver.jacobians import ResidualFn, evaluate_residual
-from torchfit.solver.normal import normal_equations, valid_entries
+from torchfit.solver.normal import Block, normal_equations, valid_entries
 from torchfit.solver.options import LMOptions
 from torchfit.solver.result import LMStatus
 from torchfit.solver.robust import problem_cost, robust_correct
@@ -29,12 +29,14 @@ def project(v: torch.Tensor, lo: torch.Tensor | None, hi: torch.Tensor | None) -
     return v
 
 
-def update_jacobian(s: dict, jacobian_for: Callable, opts: LMOptions) -> None:
+def update_jacobian(
+    s: dict, jacobian_for: Callable, opts: LMOptions, blocks: list[Block] | None = None
+) -> None:
     """Step 1 for the problems in the state ``s`` (all running) that need it; updates ``s``.
 
     ``jacobian_for(rows)`` gives the Jacobian routine ``(x, r, mask) -> J`` of the rows
     ``rows`` (positions in ``s``): the Jacobian is evaluated where a step was accepted (and
-    at the start) only.
+    at the start) only. ``blocks``: the Jacobian's sparsity, for the normal equations.
     """
     x, r, mask, cost, status = s["x"], s["r"], s.get("mask"), s["cost"], s["status"]
     lo, hi, fixed = s.get("lo"), s.get("hi"), s["fixed"]
@@ -63,7 +65,7 @@ def update_jacobian(s: dict, jacobian_for: Callable, opts: LMOptions) -> None:
         # Robust loss (torchfit.solver.robust): Triggs' correction of J and r, so that the
         # normal equations are those of 0.5 sum rho(r²); "linear" leaves them as they are.
         jac_w, r_w = robust_correct(jac, r_u, loss, scale, units_u)
-        a_new, g_new = normal_equations(jac_w, r_w, valid_u)
+        a_new, g_new = normal_equations(jac_w, r_w, valid_u, blocks)
         # J is finite where JᵀJ is (a non-finite entry of J makes its diagonal non-finite);
         # the exact test on J runs only where JᵀJ is not (it may also overflow for finite J).
         jac_ok = torch.isfinite(a_new.sum(dim=(1, 2)))

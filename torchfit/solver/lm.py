@@ -84,7 +84,7 @@ from torchfit.solver.jacobians import (
     make_jacobian,
     rows_caller,
 )
-from torchfit.solver.normal import valid_entries
+from torchfit.solver.normal import Block, valid_entries
 from torchfit.solver.options import LMOptions, SolverError
 from torchfit.solver.result import LMIterate, LMResult, LMStatus
 from torchfit.solver.robust import check_loss_units, problem_cost
@@ -117,6 +117,7 @@ def levenberg_marquardt(
     upper: torch.Tensor | None = None,
     indexed: bool = False,
     loss_units: torch.Tensor | None = None,
+    jacobian_blocks: list[Block] | None = None,
 ) -> LMResult:
     """Solve ``B`` independent nonlinear least-squares problems ``min_x 0.5 |r_b(x)|²``.
 
@@ -153,6 +154,11 @@ def levenberg_marquardt(
         loss_units: optional ``(M,)`` or ``(B, M)`` size of one unit of
             :attr:`LMOptions.loss_scale` in each residual entry (``inf``: that entry stays least
             squares whatever :attr:`LMOptions.loss`); see :mod:`torchfit.solver.robust`.
+        jacobian_blocks: optional sparsity of the Jacobian, the same for every problem:
+            disjoint ranges of residual entries, each with the parameter columns it depends
+            on (:data:`torchfit.solver.normal.Block`). The normal equations then sum
+            ``J_kᵀ J_k`` over each block's own columns; a Jacobian that is not zero outside
+            its blocks gets wrong normal equations.
 
     Returns:
         :class:`LMResult` with ``x (B, P)``, ``cost (B,)``, ``status (B,)`` and counters.
@@ -191,6 +197,7 @@ def levenberg_marquardt(
             raise SolverError(f"residual_fn: expected dtype {dtype} (that of x0), got {r.dtype}")
         m = r.shape[1]
         make_jacobian(jacobian, residual_fn, p, m, hi, opts.fold_batch)  # checks the argument
+        _check_blocks(jacobian_blocks, m, p)
         units = check_loss_units(loss_units, r)
         cost = problem_cost(r, valid_entries(mask, bsz), opts.loss, opts.loss_scale, units)
         zeros = torch.zeros(bsz, dtype=dtype, device=device)
@@ -241,7 +248,7 @@ def levenberg_marquardt(
             _on_running(
                 state,
                 lambda sub, idx: update_jacobian(
-                    sub, lambda rows: jacobian_for(rows, idx, sub), opts
+                    sub, lambda rows: jacobian_for(rows, idx, sub), opts, jacobian_blocks
                 ),
             )
             # compacted again: a problem that stopped at the gradient test takes no step
@@ -280,6 +287,18 @@ def levenberg_marquardt(
         njev=s["njev"],
         damping=s["mu"],
     )
+
+
+def _check_blocks(blocks: list[Block] | None, m: int, p: int) -> None:
+    """Raise :class:`SolverError` for a block outside the ``(M, P)`` Jacobian."""
+    for rows, cols in blocks or []:
+        if not isinstance(rows, slice) or rows.step not in (None, 1):
+            raise SolverError(f"jacobian_blocks: expected row ranges as slices, got {rows!r}")
+        bad = cols.numel() and (int(cols.min()) < 0 or int(cols.max()) >= p)
+        if rows.start is None or rows.stop is None or not 0 <= rows.start < rows.stop <= m or bad:
+            raise SolverError(
+                f"jacobian_blocks: rows {rows} / columns outside the ({m}, {p}) Jacobian"
+            )
 
 
 def _on_running(state: dict, work: Callable[[dict, torch.Tensor], object]):

@@ -21,6 +21,7 @@ __all__ = [
     "valid_entries",
     "half_squared_norm",
     "half_sum",
+    "Block",
     "normal_equations",
     "jacobian_times",
     "jacobian_t_times",
@@ -73,8 +74,16 @@ def half_sum(values: torch.Tensor, valid: list[torch.Tensor | None]) -> torch.Te
     return out
 
 
+#: A block of a Jacobian's sparsity: a range of residual entries (rows) and the parameters
+#: (columns, a (c,) int64 tensor) they depend on; every other column of those rows is zero.
+Block = tuple[slice, torch.Tensor]
+
+
 def normal_equations(
-    jac: torch.Tensor, r: torch.Tensor, valid: list[torch.Tensor | None]
+    jac: torch.Tensor,
+    r: torch.Tensor,
+    valid: list[torch.Tensor | None],
+    blocks: list[Block] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``A = JᵀJ`` ``(B, P, P)`` and ``g = Jᵀr`` ``(B, P)``, one product per problem.
 
@@ -83,10 +92,20 @@ def normal_equations(
             whose per-problem copies are then plain row gathers).
         r: ``(B, M)`` residuals.
         valid: from :func:`valid_entries`.
+        blocks: optional sparsity of ``J`` (:data:`Block`, disjoint row ranges): each block
+            adds ``J_kᵀ J_k`` over its own columns only, ``c_k²`` instead of ``P²``
+            multiply-adds per row; rows outside every block count as one block over all
+            columns. The blocks are summed in their order, then those rows, for every problem
+            alike.
     """
-    b_size, _, p = jac.shape
+    b_size, m, p = jac.shape
     a_mat = torch.empty(b_size, p, p, dtype=jac.dtype, device=jac.device)
     grad = torch.empty(b_size, p, dtype=jac.dtype, device=jac.device)
+    if blocks is not None:
+        parts = _with_rest(blocks, m, p, jac.device)
+        for b in range(b_size):
+            a_mat[b], grad[b] = _block_products(jac[b], r[b], valid[b], parts)
+        return a_mat, grad
     jac_t = jac.transpose(1, 2)
     for b in range(b_size):
         index = valid[b]
@@ -94,6 +113,47 @@ def normal_equations(
         a_mat[b] = jt @ jt.T
         grad[b] = jt @ _own(r[b], index, 0)
     return a_mat, grad
+
+
+def _with_rest(blocks: list[Block], m: int, p: int, device: torch.device) -> list:
+    """The blocks as (row indices, columns), then the rows outside them over every column."""
+    covered = torch.zeros(m, dtype=torch.bool, device=device)
+    parts = []
+    for rows, cols in blocks:
+        if bool(covered[rows].any()):
+            raise ValueError(f"Jacobian blocks overlap in rows {rows}")
+        covered[rows] = True
+        parts.append((torch.arange(m, device=device)[rows], cols.to(device)))
+    rest = (~covered).nonzero()[:, 0]
+    if rest.numel():
+        parts.append((rest, torch.arange(p, device=device)))
+    return parts
+
+
+def _block_products(
+    jac: torch.Tensor, r: torch.Tensor, index: torch.Tensor | None, parts: list
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One problem's ``JᵀJ`` (P, P) and ``Jᵀr`` (P,) summed block by block over its valid
+    entries."""
+    p = jac.shape[1]
+    a_mat = torch.zeros(p, p, dtype=jac.dtype, device=jac.device)
+    grad = torch.zeros(p, dtype=jac.dtype, device=jac.device)
+    for rows, cols in parts:
+        own = rows if index is None else _intersect(index, rows)
+        if not own.numel() or not cols.numel():
+            continue
+        jb = jac.index_select(0, own).index_select(1, cols)  # (m_k, c_k), a fresh copy
+        a_mat[cols[:, None], cols] += jb.T @ jb
+        grad[cols] += jb.T @ r.index_select(0, own)
+    return a_mat, grad
+
+
+def _intersect(index: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """The entries of the sorted ``index`` that are in ``rows`` (sorted)."""
+    if rows.numel() and bool((rows[1:] - rows[:-1] == 1).all()):  # a range
+        lo, hi = torch.searchsorted(index, rows[[0, -1]] + torch.tensor([0, 1], device=rows.device))
+        return index[int(lo) : int(hi)]
+    return index[torch.isin(index, rows)]
 
 
 def jacobian_times(
