@@ -86,6 +86,21 @@ def test_autograd_jacobian_matches_central_differences(model, subjects):
     assert checked > 10
 
 
+def test_the_jacobian_pass_gives_the_residual_bit_for_bit(model, subjects):
+    """jacobian_and_residual's residual is residual()'s (the solver takes it as the reference
+    of the next trial step), for every row of a batch."""
+    fit = problem(model, subjects[0])
+    g = torch.Generator().manual_seed(1)
+    x = fit.initial_params() + 0.01 * torch.randn(
+        2, fit.num_params, generator=g, dtype=torch.float64
+    )
+    selections = fit.select(x)
+    free = fit.stage_indices(["all"], True, True)
+    jac, r = fit.jacobian_and_residual(x, free, selections)
+    assert torch.equal(r, fit.residual(x, selections))
+    assert torch.equal(jac, fit.jacobian(x, free, selections))
+
+
 def test_batch_equals_each_subject_alone(model, subjects):
     fit = problem(model, subjects[0])
     stage = StageOptions(name="s", scales=["legs"], joints=False, root=True)

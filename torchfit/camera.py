@@ -310,14 +310,18 @@ def project_points(
         metres.
     """
     cam = world_to_camera(points, camera)
-    depth = cam[..., 2]
-    xy = cam[..., :2] / depth.unsqueeze(-1)
+    pixels = _camera_frame_to_pixels(cam, camera)
+    return (pixels, cam[..., 2]) if return_depth else pixels
+
+
+def _camera_frame_to_pixels(cam: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """Pixels (B, N, 2) of camera-frame points (B, N, 3): division, distortion, intrinsics."""
+    xy = cam[..., :2] / cam[..., 2].unsqueeze(-1)
     xy = distort_normalized(xy, camera.dist)
     K = _lift(camera.K, _is_dual(xy))
     u = K[:, 0:1, 0] * xy[..., 0] + K[:, 0:1, 1] * xy[..., 1] + K[:, 0:1, 2]
     v = K[:, 1:2, 1] * xy[..., 1] + K[:, 1:2, 2]
-    pixels = torch.stack([u, v], dim=-1)
-    return (pixels, depth) if return_depth else pixels
+    return torch.stack([u, v], dim=-1)
 
 
 def projection_jacobian(points: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
@@ -332,7 +336,8 @@ def projection_jacobian(points: torch.Tensor, camera: Camera) -> tuple[torch.Ten
         camera: B cameras (or one, broadcast).
 
     Returns:
-        (B, N, 2) pixels (as :func:`project_points`) and (B, N, 2, 3) ``∂pixel/∂X``.
+        (B, N, 2) pixels (bit for bit those of :func:`project_points`) and (B, N, 2, 3)
+        ``∂pixel/∂X``.
     """
     cam = world_to_camera(points, camera)
     inv_z = 1.0 / cam[..., 2]
@@ -341,15 +346,14 @@ def projection_jacobian(points: torch.Tensor, camera: Camera) -> tuple[torch.Ten
     r2 = x * x + y * y
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     d_radial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     # the distortion's Jacobian w.r.t. (x, y)
     dxx = radial + 2 * x * x * d_radial + 2 * p1 * y + 6 * p2 * x
     dxy = 2 * x * y * d_radial + 2 * p1 * x + 2 * p2 * y
     dyy = radial + 2 * y * y * d_radial + 6 * p1 * y + 2 * p2 * x
-    fx, s, cx = camera.K[:, 0:1, 0], camera.K[:, 0:1, 1], camera.K[:, 0:1, 2]
-    fy, cy = camera.K[:, 1:2, 1], camera.K[:, 1:2, 2]
-    pixels = torch.stack([fx * xd + s * yd + cx, fy * yd + cy], dim=-1)
+    fx, s = camera.K[:, 0:1, 0], camera.K[:, 0:1, 1]
+    fy = camera.K[:, 1:2, 1]
+    # the pixels exactly as project_points gives them (the same operations in the same order)
+    pixels = _camera_frame_to_pixels(cam, camera)
     # pixel w.r.t. (x, y): K's 2x2 block times the distortion's (symmetric off-diagonal)
     a = torch.stack([fx * dxx + s * dxy, fx * dxy + s * dyy, fy * dxy, fy * dyy], -1)
     a = a.reshape(*x.shape, 2, 2)

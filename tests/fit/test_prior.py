@@ -107,6 +107,9 @@ def test_added_rows_of_the_jacobian_match_central_differences(model, plain):
             jac[:, rows, p], fd, atol=1e-4 * max(float(fd.abs().max()), 1.0), rtol=0
         )
     assert float(jac[0, rl.facts.start].abs().sum()) > 0
+    # the Jacobian pass's residual, e_S and e_H included, is residual()'s bit for bit
+    jac2, r = fit.jacobian_and_residual(x, free, sel)
+    assert torch.equal(r, fit.residual(x, sel)) and torch.equal(jac2, jac)
 
 
 def test_known_height_pulls_the_fitted_height(model, plain):

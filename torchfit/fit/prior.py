@@ -302,11 +302,12 @@ class PriorFit(SilhouetteFit):
                 out.append((rows, scale))
         return out
 
-    def jacobian(self, full, free, selections, rows=None) -> torch.Tensor:
-        """(N, M, F): :meth:`SilhouetteFit.jacobian` with the e_S and e_H rows filled in."""
+    def jacobian_and_residual(self, full, free, selections, rows=None):
+        """:meth:`SilhouetteFit.jacobian_and_residual` with the e_S and e_H rows filled in."""
         if rows is None:
             rows = torch.arange(full.shape[0], device=full.device)
-        jac = super().jacobian(full, free, selections, rows)
+        jac, base = super().jacobian_and_residual(full, free, selections, rows)
+        r = torch.cat([base, self.prior_residual(full, rows), self.height_residual(full, rows)], 1)
         rl = self.residual_layout
         if self.prior is not None and self.prior_options.weight > 0:
             s = full[:, self.prior_columns].clamp_min(1e-3)
@@ -326,4 +327,4 @@ class PriorFit(SilhouetteFit):
                 tan = fwad.unpack_dual(neutral_height(self.model, self.layout, dual)).tangent
             dh = tan.reshape(n, c) / self.prior_options.height_tolerance_m
             jac[:, rl.facts.start, scale_pos] = dh * known[:, None].to(dh)
-        return jac
+        return jac, r

@@ -370,7 +370,19 @@ class SilhouetteFit:
         selections: dict[int, ContourSelection],
         rows: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """(N, M, F) Jacobian of :meth:`residual` w.r.t. the ``free`` (F,) parameters.
+        """(N, M, F) Jacobian of :meth:`residual` w.r.t. the ``free`` (F,) parameters (see
+        :meth:`jacobian_and_residual`)."""
+        return self.jacobian_and_residual(full, free, selections, rows)[0]
+
+    def jacobian_and_residual(
+        self,
+        full: torch.Tensor,
+        free: torch.Tensor,
+        selections: dict[int, ContourSelection],
+        rows: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The (N, M, F) Jacobian of :meth:`residual` w.r.t. the ``free`` (F,) parameters, and
+        the (N, M) residual itself (bit for bit :meth:`residual`'s, from the same pass).
 
         ``full`` (N, P) are parameter rows of the subjects ``rows`` (N,) (default: row i is
         subject i), ``selections`` their contour choice.
@@ -393,6 +405,7 @@ class SilhouetteFit:
         if rows is None:
             rows = at
         scale_cols = (free < self.layout.num_scale_params).nonzero().flatten()
+        parts = []
         for k, j in enumerate(self.poses):
             sel = selections[j]
             sl = self.layout.blocks[j].columns
@@ -400,6 +413,7 @@ class SilhouetteFit:
             cols = torch.cat([scale_cols, pose_cols])
             c = cols.numel()
             if c == 0:
+                parts.append(self.pose_residual(full, j, rows, sel))
                 continue
             ends, vidx, lookup = self._prepare(sel)
             # closed form: the contour vertices' pixels and their derivatives w.r.t. the
@@ -438,6 +452,7 @@ class SilhouetteFit:
             )
             block_m = padded_row_sum(per_point.transpose(1, 2))
             weight = self.pose_weights[rows][:, k, None]
+            parts.append(torch.cat([e_p.detach(), e_m.detach()[:, None]], 1) * weight)
             # the scale columns and the posture's own are two runs of consecutive columns
             e_p_rows, e_m_row = rl.e_p(j), rl.e_m(j)
             for run, part in _runs(cols, block_p * weight[:, :, None], block_m * weight):
@@ -448,7 +463,8 @@ class SilhouetteFit:
         lo, hi = self.lower[free], self.upper[free]
         slope = self.options.barrier_weight * ((x > hi).to(x) - (x < lo).to(x))
         jac[:, rl.barrier.start + free, torch.arange(f)] = slope
-        return jac
+        parts.append(self.barrier_residual(full))
+        return jac, torch.cat(parts, 1)
 
 
 #: The endpoint pixels of a residual entry and the ContourEndpoints field naming their vertex.

@@ -122,8 +122,8 @@ def solve_stage(
     def own_jacobian(x: torch.Tensor, rows: torch.Tensor):
         full_x = expand(x, rows)
         sel = chosen.refresh(rows, full_x)
-        jac = fit.jacobian(full_x, free, sel, rows)
-        return jac.to(solver_dtype), fit.residual(full_x, sel, rows).to(solver_dtype)
+        jac, r = fit.jacobian_and_residual(full_x, free, sel, rows)
+        return jac.to(solver_dtype), r.to(solver_dtype)
 
     def generic_jacobian(x: torch.Tensor, rows: torch.Tensor):
         chosen.refresh(rows, expand(x, rows))
