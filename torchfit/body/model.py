@@ -18,52 +18,11 @@ import torch
 
 from torchfit._dual import is_dual, lift
 from torchfit.body.kinematics import SkeletonChain
+from torchfit.body.rotations import axis_angle_to_matrix, cross_matrix, left_jacobian
 from torchfit.body.template import Template, load_template
 from torchfit.errors import ModelError, check_shape
 
 __all__ = ["BodyModel", "BodyOutput", "axis_angle_to_matrix"]
-
-
-def _cross_matrix(v: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) matrices ``[v]×`` with ``[v]× w = v × w`` of vectors (..., 3)."""
-    x, y, z = v.unbind(-1)
-    zero = torch.zeros_like(x)
-    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
-
-
-def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
-    """Rodrigues' formula, smooth at zero.
-
-    Args:
-        rotvec: (..., 3) axis * angle, radians.
-
-    Returns:
-        (..., 3, 3) rotation matrices.
-    """
-    theta2 = (rotvec * rotvec).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
-    small = theta2 < 1e-12
-    safe2 = torch.where(small, torch.ones_like(theta2), theta2)
-    theta = safe2.sqrt()
-    # sin(t)/t and (1 - cos t)/t^2 with their Taylor series near 0
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / safe2)
-    k = _cross_matrix(rotvec)
-    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(k)
-    return eye + a * k + b * (k @ k)
-
-
-def _left_jacobian(rotvec: torch.Tensor) -> torch.Tensor:
-    """(B, 3, 3) left Jacobian of SO(3) at axis-angles (B, 3): ``I + b K + c K²`` with
-    ``b = (1 − cos θ)/θ²``, ``c = (θ − sin θ)/θ³`` (Taylor series near 0)."""
-    theta2 = (rotvec * rotvec).sum(-1)[:, None, None]
-    small = theta2 < 1e-12
-    safe2 = torch.where(small, torch.ones_like(theta2), theta2)
-    theta = safe2.sqrt()
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / safe2)
-    c = torch.where(small, 1 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (safe2 * theta))
-    k = _cross_matrix(rotvec)
-    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(k)
-    return eye + b * k + c * (k @ k)
 
 
 @dataclass
@@ -377,9 +336,9 @@ class BodyModel(torch.nn.Module):
         jac[:, [0, 1, 2], [0, 1, 2]] = 1.0
         jac[:, :, 6:] = self._turns(rot_root, frames, out, seg).transpose(1, 2)
         # root rotation: column c is J_l[:, c] × (p − t)
-        left = _left_jacobian(root_rotation)  # (B, 3, 3)
+        left = left_jacobian(root_rotation)  # (B, 3, 3)
         rel = (p - root_translation[:, None]).transpose(1, 2)  # (B, 3, K)
-        cols = _cross_matrix(left.transpose(1, 2))  # (B, 3, 3, 3): [J_l[:, c]]×
+        cols = cross_matrix(left.transpose(1, 2))  # (B, 3, 3, 3): [J_l[:, c]]×
         jac[:, :, 3:6] = (cols @ rel[:, None]).transpose(1, 2)
         return p, jac.permute(0, 3, 1, 2)
 
