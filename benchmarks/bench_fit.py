@@ -102,7 +102,8 @@ def machine() -> str:
     )
 
 
-def part1(config, subjects, max_iter: int, lm_factor: int = 4) -> None:
+def fit_problem(config, subjects) -> SilhouetteFit:
+    """The fitting problem of ``subjects``, segmented as ``config`` says (float64)."""
     model = BodyModel(config.model.template)
     segmented = [segment_subject(s, config) for s in subjects]
     person = person_data(
@@ -112,7 +113,12 @@ def part1(config, subjects, max_iter: int, lm_factor: int = 4) -> None:
         stack_cameras([s.camera for s in subjects]),
         torch.float64,
     )
-    fit = SilhouetteFit(model, person, config.fit, (config.model.scale_min, config.model.scale_max))
+    bounds = (config.model.scale_min, config.model.scale_max)
+    return SilhouetteFit(model, person, config.fit, bounds)
+
+
+def part1(config, subjects, max_iter: int, lm_factor: int = 4) -> None:
+    fit = fit_problem(config, subjects)
     stage = StageOptions(name="scales_and_root", scales=["all"], joints=False, root=True)
     options = LMOptions(
         max_iter=max_iter, ftol=config.solver.ftol, xtol=config.solver.xtol, gtol=config.solver.gtol

@@ -20,13 +20,12 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from torchfit.body.model import BodyModel  # noqa: E402
-from torchfit.camera import stack_cameras  # noqa: E402
+from bench_fit import fit_problem  # noqa: E402
+
 from torchfit.config import load_config  # noqa: E402
-from torchfit.fit import SilhouetteFit  # noqa: E402
 from torchfit.io.dataset import load_dataset  # noqa: E402
-from torchfit.pipeline import person_data, segment_subject  # noqa: E402
 from torchfit.solver.normal import normal_equations, valid_entries  # noqa: E402
 
 
@@ -41,17 +40,7 @@ def median_ms(fn, repeats: int) -> float:
 
 
 def parts(config, subjects, batch: int, repeats: int) -> dict[str, float]:
-    chosen = [subjects[i % len(subjects)] for i in range(batch)]
-    segmented = [segment_subject(s, config) for s in chosen]
-    person = person_data(
-        config,
-        torch.stack([m for _, m, _ in segmented]),
-        torch.stack([sh for _, _, sh in segmented]),
-        stack_cameras([s.camera for s in chosen]),
-        torch.float64,
-    )
-    model = BodyModel(config.model.template)
-    fit = SilhouetteFit(model, person, config.fit, (config.model.scale_min, config.model.scale_max))
+    fit = fit_problem(config, [subjects[i % len(subjects)] for i in range(batch)])
     g = torch.Generator().manual_seed(0)
     x = fit.initial_params()
     x = x + 0.02 * torch.randn(x.shape, generator=g, dtype=x.dtype)

@@ -266,6 +266,23 @@ class BodyModel(torch.nn.Module):
         vertices = posed.reshape(posed.shape[0], -1, 3)[:, self._flat_index]
         return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
 
+    def _posed_frames(
+        self,
+        scales: torch.Tensor,
+        joint_angles: torch.Tensor,
+        root_translation: torch.Tensor,
+        rot_root: torch.Tensor,
+        vertex_index: torch.Tensor,
+    ) -> tuple[torch.Tensor, BodyOutput, torch.Tensor]:
+        """One kinematics pass for the closed-form derivatives: every chain frame's rotation
+        (B, F, 3, 3) in the root frame, the posed points ``vertex_index`` (K,) under the root
+        rotation matrices ``rot_root`` (B, 3, 3), and each point's segment (K,)."""
+        check_shape("scales", scales, ("B", self.num_segments, 3))
+        frames = self.chain.frame_rotations(joint_angles)
+        rot = rot_root[:, None] @ frames[:, self.chain.frame_indices]
+        out = self._posed(scales, rot, root_translation, vertex_index, False)
+        return frames, out, self._vertex_segment.to(vertex_index.device)[vertex_index]
+
     def _turns(
         self,
         rot_root: torch.Tensor,
@@ -321,16 +338,13 @@ class BodyModel(torch.nn.Module):
             (B, K, 3) vertices (as :meth:`forward` gives them) and (B, K, 3, 6 + Q) their
             Jacobian w.r.t. ``[root_translation, root_rotation, joint_angles]``.
         """
-        check_shape("scales", scales, ("B", self.num_segments, 3))
         check_shape("root_rotation", root_rotation, ("B", 3))
-        chain = self.chain
         rot_root = axis_angle_to_matrix(root_rotation)
-        frames = chain.frame_rotations(joint_angles)  # (B, F, 3, 3), one kinematics pass
-        rot = rot_root[:, None] @ frames[:, chain.frame_indices]
-        out = self._posed(scales, rot, root_translation, vertex_index, False)
+        frames, out, seg = self._posed_frames(
+            scales, joint_angles, root_translation, rot_root, vertex_index
+        )
         p = out.vertices  # (B, K, 3)
         b, k = p.shape[:2]
-        seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
         q = self.num_dofs
         jac = torch.zeros(b, 3, 6 + q, k, dtype=p.dtype, device=p.device)
         jac[:, [0, 1, 2], [0, 1, 2]] = 1.0
@@ -377,13 +391,11 @@ class BodyModel(torch.nn.Module):
             the posed body (vertices (B, K, 3)), ``∂p/∂σ`` (B, K, 3, G, 3) w.r.t. each group's
             three scales, and ``∂p/∂q`` (B, K, 3, Q').
         """
-        check_shape("scales", scales, ("B", self.num_segments, 3))
         check_shape("root_rotation", root_rotation, ("B", 3, 3))
-        chain = self.chain
-        frames = chain.frame_rotations(joint_angles)  # (B, F, 3, 3), one kinematics pass
-        rot = root_rotation[:, None] @ frames[:, chain.frame_indices]  # (B, S, 3, 3)
-        out = self._posed(scales, rot, root_translation, vertex_index, False)
-        seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
+        frames, out, seg = self._posed_frames(
+            scales, joint_angles, root_translation, root_rotation, vertex_index
+        )
+        rot = out.rotations  # (B, S, 3, 3)
         b, k = out.vertices.shape[:2]
         path = self._path[seg]  # (K, D): the segment, its parent, ... (padded)
         levers = self._path_levers[seg]  # (K, D, 3)
