@@ -57,7 +57,7 @@ from torchfit.pipeline.runtime import apply_runtime, torch_dtype
 from torchfit.pipeline.stages import run_stages, start_params
 from torchfit.status import SubjectStatus
 
-__all__ = ["run", "fit_batch", "fit_subjects", "batches"]
+__all__ = ["run", "fit_batch", "fit_subjects", "batches", "build_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ def _fit(
     shadow = torch.stack([p.shadow[used] for p in prepared])
     cameras = stack_cameras([p.subject.camera for p in prepared])
     person = person_data(config, masks, shadow, cameras, model.dtype).to(model.device)
-    fit = _problem(model, person, config, [p.subject.facts for p in prepared])
+    fit = build_problem(model, person, config, [p.subject.facts for p in prepared])
     images = torch.stack([p.images[used] for p in prepared])
     x, starts = start_params(fit, config, masks, images)
     if starts is not None:
@@ -83,9 +83,20 @@ def _fit(
     return fit, x, starts, records
 
 
-def _problem(model: BodyModel, person, config: Config, facts: list[dict]) -> SilhouetteFit:
+def build_problem(model: BodyModel, person, config: Config, facts: list[dict]) -> SilhouetteFit:
     """The batch's problem: with the population prior and the known facts where the config
-    weighs the prior or a subject has ``subject.yaml`` facts."""
+    weighs the prior or a subject has ``subject.yaml`` facts.
+
+    Args:
+        model: the body model.
+        person: the batch's :class:`torchfit.fit.PersonData` (B subjects).
+        config: the run's config (``model`` bounds, ``fit`` options and prior).
+        facts: one ``subject.yaml`` dict per subject (empty where none).
+
+    Returns:
+        a :class:`torchfit.fit.SilhouetteFit`, or a :class:`torchfit.fit.prior.PriorFit`
+        when the prior is weighed or some subject has facts.
+    """
     bounds = (config.model.scale_min, config.model.scale_max)
     options = config.fit.prior
     if options.weight == 0 and not any(facts):
