@@ -8,6 +8,7 @@ import pytest
 
 from torchfit.pipeline.checks import (
     PROPORTIONS_CSV,
+    Outlier,
     Proportion,
     bound_flags,
     load_proportions,
@@ -110,3 +111,10 @@ def test_flags_make_a_poor_fit_with_their_message():
 def test_a_limb_half_again_too_long_is_flagged(key):
     flags = proportion_flags({**HUMAN, key: HUMAN[key] * 1.6})
     assert len(flags) == 1 and flags[0].startswith(key[:-2])
+
+
+def test_a_ratio_just_past_its_bound_does_not_print_as_the_bound():
+    # the demo's subject_001: 0.22083 against 0.22076 read "0.2208 above ... 0.2208 (+0.0 %"
+    text = Outlier("shoulder_width_m", 0.22083, 0.22076).describe()
+    assert text.startswith("shoulder_width / height 0.22083 above the 99th percentile 0.22076")
+    assert "(+0.03 %;" in text

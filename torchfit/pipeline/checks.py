@@ -75,9 +75,14 @@ class Outlier:
         """E.g. ``"thigh / height 0.2900 above the 99th percentile 0.2680 (+8.2 %; ...)"``."""
         side = "above the 99th" if self.ratio > self.bound else "below the 1st"
         excess = 100 * (self.ratio / self.bound - 1)
+        # enough decimals that a ratio just past its bound does not print as the bound itself
+        digits = 4
+        while digits < 7 and f"{self.ratio:.{digits}f}" == f"{self.bound:.{digits}f}":
+            digits += 1
+        share = f"{excess:+.1f}" if abs(excess) >= 0.05 else f"{excess:+.1g}"
         return (
-            f"{self.key[:-2]} / height {self.ratio:.4f} {side} percentile {self.bound:.4f} "
-            f"({excess:+.1f} %; ANSUR II, model definitions)"
+            f"{self.key[:-2]} / height {self.ratio:.{digits}f} {side} percentile "
+            f"{self.bound:.{digits}f} ({share} %; ANSUR II, model definitions)"
         )
 
 
