@@ -230,3 +230,26 @@ def test_projection_jacobian_matches_central_differences():
     central = torch.stack(cols, -1)
     assert central.abs().max() > 50  # pixels per metre: the test has something to check
     torch.testing.assert_close(jac, central, atol=1e-6, rtol=1e-7)
+
+
+def test_undistort_inverts_distort():
+    from torchfit.camera import distort_normalized, undistort_normalized
+
+    xy = torch.rand(2, 50, 2, dtype=torch.float64) * 0.8 - 0.4
+    dist = _simple_camera().dist
+    back = undistort_normalized(distort_normalized(xy, dist), dist)
+    assert torch.allclose(back, xy, atol=1e-10)
+
+
+def test_floor_points_invert_the_projection_of_floor_points():
+    from torchfit.camera import floor_points
+
+    cam = _simple_camera()  # with distortion
+    gen = torch.Generator().manual_seed(1)
+    floor = torch.zeros(1, 40, 3, dtype=torch.float64)
+    floor[..., :2] = torch.rand(1, 40, 2, generator=gen, dtype=torch.float64) * 2 - 1
+    pixels = project_points(floor, cam)
+    assert torch.allclose(floor_points(pixels, cam), floor, atol=1e-8)
+    # a pixel above the horizon sees no floor
+    above = project_points(torch.tensor([[[-5.0, 2.0, 3.0]]], dtype=torch.float64), cam)
+    assert bool(torch.isnan(floor_points(above, cam)).all())

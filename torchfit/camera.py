@@ -37,7 +37,9 @@ __all__ = [
     "stack_cameras",
     "world_to_camera",
     "distort_normalized",
+    "undistort_normalized",
     "project_points",
+    "floor_points",
     "projection_jacobian",
     "project_with_jacobian",
     "look_at",
@@ -290,6 +292,59 @@ def distort_normalized(xy: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
     xd = x + x * poly + p1 * xy2 + p2 * (r2 + xx + xx)
     yd = y + y * poly + p1 * (r2 + yy + yy) + p2 * xy2
     return torch.stack([xd, yd], dim=-1)
+
+
+def undistort_normalized(
+    xy: torch.Tensor, dist: torch.Tensor, iterations: int = 20
+) -> torch.Tensor:
+    """Invert :func:`distort_normalized` by fixed-point iteration (as ``cv2.undistortPoints``).
+
+    Args:
+        xy: (B, N, 2) distorted normalised coordinates.
+        dist: (B, 5) ``(k1, k2, p1, p2, k3)`` (B may be 1, broadcast).
+        iterations: fixed-point steps (20 reach 1e-10 for the distortion of real lenses).
+
+    Returns:
+        (B, N, 2) undistorted normalised coordinates.
+    """
+    check_shape("xy", xy, ("B", "N", 2))
+    check_shape("dist", dist, (None, 5))
+    k1, k2, p1, p2, k3 = (dist[:, i : i + 1] for i in range(5))
+    xd, yd = xy[..., 0], xy[..., 1]
+    x, y = xd, yd
+    for _ in range(iterations):
+        xx, yy, xy_ = x * x, y * y, x * y
+        r2 = xx + yy
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        x = (xd - 2 * p1 * xy_ - p2 * (r2 + 2 * xx)) / radial
+        y = (yd - p1 * (r2 + 2 * yy) - 2 * p2 * xy_) / radial
+    return torch.stack([x, y], dim=-1)
+
+
+def floor_points(pixels: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """The points of the floor (world z = 0) seen at pixels.
+
+    Args:
+        pixels: (B, N, 2) pixels ``(u, v)``.
+        camera: B cameras.
+
+    Returns:
+        (B, N, 3) world points on the floor; NaN where the pixel's ray does not go down to the
+        floor in front of the camera (at or above the horizon).
+    """
+    check_shape("pixels", pixels, ("B", "N", 2))
+    K = camera.K.to(pixels)
+    # pixel -> distorted normalised coordinates (skew included), then undistorted
+    yd = (pixels[..., 1] - K[:, 1:2, 2]) / K[:, 1:2, 1]
+    xd = (pixels[..., 0] - K[:, 0:1, 2] - K[:, 0:1, 1] * yd) / K[:, 0:1, 0]
+    xy = undistort_normalized(torch.stack([xd, yd], dim=-1), camera.dist.to(pixels))
+    rays_cam = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)
+    R = camera.R.to(pixels)
+    rays = torch.einsum("bji,bnj->bni", R, rays_cam)  # Rᵀ d: world directions
+    centre = camera_centre(R, camera.t.to(pixels))[:, None, :]
+    depth = -centre[..., 2] / rays[..., 2]
+    depth = torch.where(depth > 0, depth, torch.full_like(depth, float("nan")))
+    return centre + depth[..., None] * rays
 
 
 def project_points(

@@ -10,6 +10,7 @@ the stage schedule). :mod:`torchfit.config.loader` checks a YAML file against it
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -126,10 +127,36 @@ class SegmentationConfig(SegmentationOptions):
             that folder, background subtraction otherwise.
         chroma_key: the key colour, tolerances and spill handling
             (:class:`torchfit.image.ChromaKeyOptions`).
+        floor_reach_m: a posture whose silhouette's lowest pixel sees the floor further than
+            this from the floor mark (metres) has lost its feet: the subject is ``poor_fit``
+            with that reason (:func:`torchfit.pipeline.prepare.reach_floor`); None: not
+            checked.
+        floor_retry: with background subtraction and the shadow test, segment such a posture
+            once more, the shadow test confined to the lowest ``floor_retry_band`` of the
+            foreground (``shadow_band``) and with ``shadow_bridge``, and keep the new
+            silhouette where it reaches the floor.
+        floor_retry_band: see ``floor_retry``.
     """
 
     method: Literal["auto", "background", "masks", "chroma_key"] = "auto"
     chroma_key: ChromaKeyOptions = field(default_factory=ChromaKeyOptions)
+    floor_reach_m: float | None = 1.0
+    floor_retry: bool = False
+    floor_retry_band: float = 0.15
+
+    def __post_init__(self) -> None:
+        if self.floor_reach_m is not None and not (
+            math.isfinite(self.floor_reach_m) and self.floor_reach_m > 0
+        ):
+            raise ConfigError(
+                f"segmentation.floor_reach_m: expected a number > 0 or null, got "
+                f"{self.floor_reach_m!r}"
+            )
+        if not 0.0 < self.floor_retry_band <= 1.0:
+            raise ConfigError(
+                f"segmentation.floor_retry_band: expected a value in (0, 1], got "
+                f"{self.floor_retry_band!r}"
+            )
 
 
 @dataclass(frozen=True)

@@ -7,24 +7,36 @@ subject's ``masks/``, or ``chroma_key``."""
 
 from __future__ import annotations
 
+import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 
-from torchfit.camera import Camera
+from torchfit.camera import Camera, floor_points
 from torchfit.config.schema import Config
 from torchfit.errors import DataError, SegmentationError
 from torchfit.fit.person import PersonData, person_data_from_masks
-from torchfit.image.background import fit_background
+from torchfit.image.background import BackgroundModel, fit_background
 from torchfit.image.chroma import ChromaKeyOptions, chroma_key, despill, key_colour
 from torchfit.image.plausibility import implausible
 from torchfit.image.segment import SegmentationOptions, clean_mask, segment
 from torchfit.io.dataset import Subject
 from torchfit.io.images import load_frames, read_mask
 
-__all__ = ["PreparedSubject", "segment_subject", "read_masks", "prepare_subject", "person_data"]
+__all__ = [
+    "PreparedSubject",
+    "segment_subject",
+    "segment_postures",
+    "floor_reach",
+    "reach_floor",
+    "read_masks",
+    "prepare_subject",
+    "person_data",
+]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -37,6 +49,10 @@ class PreparedSubject:
         masks: (6, H, W) bool silhouettes.
         shadow: (6, H, W) bool, pixels the shadow test removed.
         seconds: time spent reading and segmenting.
+        notes: what the segmentation found or did beyond the configured chain (see
+            :func:`reach_floor`), for ``params.json``.
+        flags: the notes that make the fit doubtful (a silhouette that does not reach the
+            floor); the judge makes the subject ``poor_fit`` with them.
     """
 
     subject: Subject
@@ -44,14 +60,24 @@ class PreparedSubject:
     masks: torch.Tensor
     shadow: torch.Tensor
     seconds: float
+    notes: list[str] = field(default_factory=list)
+    flags: list[str] = field(default_factory=list)
 
 
 def segment_subject(
     subject: Subject, segmentation: SegmentationOptions | Config
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`segment_postures` without its notes: images, silhouettes and shadow pixels."""
+    images, masks, shadow, _, _ = segment_postures(subject, segmentation)
+    return images, masks, shadow
+
+
+def segment_postures(
+    subject: Subject, segmentation: SegmentationOptions | Config
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[str], list[str]]:
     """Segment a subject's six posture images: background subtraction, chroma key or the
     subject's own masks, as ``subject.method`` says (no shadow pixels but with background
-    subtraction).
+    subtraction), and check that every silhouette reaches the floor (:func:`reach_floor`).
 
     Args:
         subject: the dataset entry.
@@ -59,8 +85,9 @@ def segment_subject(
             section is used).
 
     Returns:
-        images (6, 3, H, W) in [0, 1], silhouettes (6, H, W) bool and the pixels the shadow
-        test removed (6, H, W) bool.
+        images (6, 3, H, W) in [0, 1], silhouettes (6, H, W) bool, the pixels the shadow
+        test removed (6, H, W) bool, notes on what was found or done beyond the configured
+        chain, and the flags among them (silhouettes that do not reach the floor).
 
     Raises:
         DataError: invalid subject folder, or a mask that cannot be read or has the wrong
@@ -75,14 +102,15 @@ def segment_subject(
         raise DataError("; ".join(subject.problems))
     size = subject.camera.image_size
     images, _ = load_frames(subject.poses, size=size)
-    shadow = None
+    shadow, model = None, None
     if subject.method == "masks":
         masks = read_masks(subject)
     elif subject.method == "chroma_key":
         images, masks = _chroma_key(subject, images, segmentation)
     else:
         background, _ = load_frames(subject.background, size=size)
-        seg = segment(images, fit_background(background, segmentation), segmentation)
+        model = fit_background(background, segmentation)
+        seg = segment(images, model, segmentation)
         masks, shadow = seg.masks[:, 0], seg.shadow[:, 0]
     missing = [
         f"pose{i + 1} ({subject.poses[i].name})"
@@ -97,7 +125,109 @@ def segment_subject(
         raise SegmentationError(f"segmentation implausible in {'; in '.join(wrong)}")
     if shadow is None:
         shadow = torch.zeros_like(masks)
-    return images, masks, shadow
+    masks, shadow, notes, flags = reach_floor(
+        images, model, masks, shadow, subject.camera, segmentation
+    )
+    return images, masks, shadow, notes + flags, flags
+
+
+def floor_reach(masks: torch.Tensor, camera: Camera) -> list[float]:
+    """How far from the floor mark each silhouette's lowest pixel sees the floor.
+
+    Args:
+        masks: (J, H, W) bool silhouettes.
+        camera: their camera (batch 1).
+
+    Returns:
+        per silhouette, metres between the world origin and the floor point seen at the mean
+        column of its lowest row; ``inf`` for an empty silhouette or a row at or above the
+        horizon.
+    """
+    rows, pixels = [], []
+    for j, mask in enumerate(masks):
+        ys = torch.nonzero(mask.any(dim=1)).flatten()
+        if ys.numel():
+            v = int(ys[-1])
+            rows.append(j)
+            pixels.append([float(torch.nonzero(mask[v]).float().mean()), float(v)])
+    reach = [float("inf")] * masks.shape[0]
+    if pixels:
+        points = floor_points(torch.tensor([pixels], dtype=torch.float64), camera)[0]
+        for j, d in zip(rows, points[:, :2].norm(dim=1).tolist(), strict=True):
+            reach[j] = d if np.isfinite(d) else float("inf")
+    return reach
+
+
+def reach_floor(
+    images: torch.Tensor,
+    model: BackgroundModel | None,
+    masks: torch.Tensor,
+    shadow: torch.Tensor,
+    camera: Camera,
+    segmentation: SegmentationOptions,
+) -> tuple[torch.Tensor, torch.Tensor, list[str], list[str]]:
+    """Find the postures whose silhouette lost its feet and, on request, segment them again.
+
+    Every posture stands on the floor mark (within a step of it), so a silhouette whose lowest
+    pixel sees the floor further than ``segmentation.floor_reach_m`` from the mark has lost
+    its lower legs: most often the shadow test took a leg for a cast shadow (a light leg
+    before a light floor or wall is an attenuated copy of it) and the clean-up then dropped
+    what was cut off. Such a posture is a flag (the judge makes the subject ``poor_fit``).
+
+    With ``segmentation.floor_retry`` (and background subtraction with the shadow test), those
+    postures are first segmented once more: the shadow test confined to the lowest
+    ``segmentation.floor_retry_band`` of the foreground (where the feet's own cast shadow
+    lies), with ``shadow_bridge`` (shadow-like pixels with the person above and below them in
+    their column stay person). The new silhouette is kept where it reaches the floor.
+
+    Args:
+        images: (J, 3, H, W) the posture images.
+        model: their background model (None: the silhouettes did not come from background
+            subtraction, nothing is segmented again).
+        masks, shadow: (J, H, W) silhouettes and shadow pixels.
+        camera: the subject's camera.
+        segmentation: ``floor_reach_m`` (None: nothing is checked), ``floor_retry``,
+            ``floor_retry_band`` and the options of the first segmentation.
+
+    Returns:
+        silhouettes, shadow pixels, one note per posture segmented again, and one flag per
+        posture whose silhouette still does not reach the floor.
+    """
+    limit = getattr(segmentation, "floor_reach_m", None)
+    if limit is None:
+        return masks, shadow, [], []
+    reach = floor_reach(masks, camera)
+    short = [j for j, d in enumerate(reach) if not d <= limit]
+    notes: list[str] = []
+    retry = (
+        getattr(segmentation, "floor_retry", False)
+        and model is not None
+        and segmentation.shadow_test
+        and not segmentation.shadow_bridge
+    )
+    if short and retry:
+        band = min(segmentation.shadow_band, getattr(segmentation, "floor_retry_band", 1.0))
+        again_options = replace(segmentation, shadow_bridge=True, shadow_band=band)
+        again = segment(images[short], model, again_options)
+        again_reach = floor_reach(again.masks[:, 0], camera)
+        masks, shadow = masks.clone(), shadow.clone()
+        for k, j in enumerate(short):
+            if again_reach[k] <= limit:
+                masks[j], shadow[j] = again.masks[k, 0], again.shadow[k, 0]
+                notes.append(
+                    f"pose{j + 1}: the silhouette saw the floor {reach[j]:.2f} m from the mark; "
+                    f"segmented again ({again_reach[k]:.2f} m)"
+                )
+                log.info(notes[-1])
+                reach[j] = again_reach[k]
+    flags = [
+        f"pose{j + 1}: the silhouette does not reach the floor (its lowest pixel sees it "
+        f"{reach[j]:.2f} m from the mark): the segmentation lost the lower legs, check the "
+        "overlays"
+        for j in range(len(reach))
+        if not reach[j] <= limit
+    ]
+    return masks, shadow, notes, flags
 
 
 def read_masks(subject: Subject) -> torch.Tensor:
@@ -153,8 +283,9 @@ def _chroma_key(
 def prepare_subject(subject: Subject, config: Config) -> PreparedSubject:
     """Read and segment one subject (raises as :func:`segment_subject`)."""
     t0 = time.perf_counter()
-    images, masks, shadow = segment_subject(subject, config.segmentation)
-    return PreparedSubject(subject, images, masks, shadow, time.perf_counter() - t0)
+    images, masks, shadow, notes, flags = segment_postures(subject, config.segmentation)
+    seconds = time.perf_counter() - t0
+    return PreparedSubject(subject, images, masks, shadow, seconds, notes, flags)
 
 
 def person_data(

@@ -178,7 +178,7 @@ def fit_batch(
             f"pose{j}": {"e_P_rms_px": e_p, "e_M_px": e_m}
             for j, (e_p, e_m) in fit.residual_layout.per_pose_quality(final[i]).items()
         }
-        status, message = judge(records[i], quality, config.fit.max_contour_rms_px)
+        status, message = judge(records[i], quality, config.fit.max_contour_rms_px, prep.flags)
         measurements = {k: float(v[i]) for k, v in measures.items()}
         if config.output.overlays:
             write_overlays(folder, prep, fit, selections, i, tb)
@@ -201,6 +201,7 @@ def fit_batch(
             seconds + prep.seconds,
         )
         document.update(facts_record(fit, i))
+        document["segmentation_notes"] = list(prep.notes)
         write_json(folder / "params.json", document)
         write_json(folder / "measurements.json", {**measurements, "status": str(status)})
         write_fingerprint(folder, fingerprints[name])
