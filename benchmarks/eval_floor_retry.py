@@ -14,7 +14,6 @@ confinement) and with the bridge. Means are over the postures found.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
 
 import cv2
@@ -25,7 +24,7 @@ from torchfit.config.loader import load_config
 from torchfit.image import fit_background, segment
 from torchfit.io.dataset import load_subject
 from torchfit.io.images import load_frames
-from torchfit.pipeline.prepare import floor_reach
+from torchfit.pipeline.prepare import floor_reach, floor_retry_options
 
 
 def _iou(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -42,9 +41,7 @@ def main() -> None:
     limit = seg.floor_reach_m if seg.floor_reach_m is not None else 1.0
     variants = {"first": seg}
     for band in (float(b) for b in args.bands.split(",")):
-        variants[f"band {band:g} + bridge"] = dataclasses.replace(
-            seg, shadow_band=min(seg.shadow_band, band), shadow_bridge=True
-        )
+        variants[f"band {band:g} + bridge"] = floor_retry_options(seg, band)
     found: list[list[tuple[float, float]]] = []
     subjects = affected = 0
     for root in args.data:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from image_testing import quantise
+from image_testing import COLOUR_SHADOW, quantise, shin_scene
 
 from torchfit.errors import ConfigError, SegmentationError
 from torchfit.image import (
@@ -70,38 +70,12 @@ def test_shadow_test_keeps_the_leg_gap_and_drops_the_shadow() -> None:
 def test_shadow_bridge_keeps_shins_of_the_floor_colour_between_knee_and_shoe() -> None:
     # Grey floor; blue trunk and thighs; shins a darker copy of the floor (what the shadow test
     # calls shadow); black shoes; a real cast shadow on the floor beside the feet.
-    gen = torch.Generator().manual_seed(5)
-    h, w = 90, 100
-    yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
-    floor = torch.full((3, 1, 1), 0.6) * (1 + 0.05 * torch.sin(xx * 0.5) * torch.cos(yy * 0.4))
-    frames = quantise((floor + 0.006 * torch.randn(5, 3, h, w, generator=gen)).clamp(0, 1))
-    image = floor.clone()
-    image[:, 70:86, 60:95] *= 0.7  # the cast shadow, to the right of the right shoe
-    body = torch.zeros(h, w, dtype=torch.bool)
-    body[5:55, 15:57] = True
-    body[30:55, 30:42] = False  # the gap between the thighs
-    shins = torch.zeros_like(body)
-    shins[55:75, 15:30] = shins[55:75, 42:57] = True
-    shoes = torch.zeros_like(body)
-    shoes[75:85, 13:30] = shoes[75:85, 42:59] = True
-    image[:, body] = torch.tensor([0.2, 0.3, 0.7]).view(3, 1)
-    image[:, shins] = image[:, shins] * 0.8
-    image[:, shoes] = 0.05
-    image = quantise((image + 0.006 * torch.randn(3, h, w, generator=gen)).clamp(0, 1))[None]
+    scene = shin_scene()
+    frames, image = scene["frames"], scene["image"]
+    body, shins, shoes, cast = scene["body"], scene["shins"], scene["shoes"], scene["cast"]
     person = body | shins | shoes
-    cast = torch.zeros_like(body)
-    cast[70:86, 60:95] = True
     # colour alone (no texture test, the earlier model): the shins pass as shadow
-    base = dict(
-        gamma=1.0,
-        threshold=4.0,
-        shadow_test=True,
-        shadow_band=0.4,
-        shadow_ratio=(0.5, 0.95),
-        shadow_chroma=0.05,
-        shadow_noise=0.0,
-        shadow_min_texture=float("inf"),
-    )
+    base = COLOUR_SHADOW
     cut = SegmentationOptions(**base)
     model = fit_background(frames, cut)
     without = segment(image, model, cut)

@@ -10,7 +10,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "image"))
-from image_testing import quantise  # noqa: E402
+from image_testing import COLOUR_SHADOW, shin_scene  # noqa: E402
 
 from torchfit.camera import Camera, look_at  # noqa: E402
 from torchfit.config.schema import SegmentationConfig  # noqa: E402
@@ -34,48 +34,18 @@ def _camera() -> Camera:
     )
 
 
-def _scene(shin_shade: float):
-    """A grey floor, a blue trunk and thighs, shins ``shin_shade`` times the floor (0.8: what
-    the shadow test calls a shadow; 0.3: plainly person), black shoes. Background frames
-    (5, 3, H, W), the image (1, 3, H, W) and the person (H, W)."""
-    gen = torch.Generator().manual_seed(5)
-    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
-    floor = torch.full((3, 1, 1), 0.6) * (1 + 0.05 * torch.sin(xx * 0.5) * torch.cos(yy * 0.4))
-    frames = quantise((floor + 0.006 * torch.randn(5, 3, H, W, generator=gen)).clamp(0, 1))
-    image = floor.clone()
-    body = torch.zeros(H, W, dtype=torch.bool)
-    body[5:55, 35:77] = True
-    body[30:55, 50:62] = False  # the gap between the thighs
-    shins = torch.zeros_like(body)
-    shins[55:75, 35:50] = shins[55:75, 62:77] = True
-    shoes = torch.zeros_like(body)
-    shoes[75:85, 33:50] = shoes[75:85, 62:79] = True
-    image[:, body] = torch.tensor([0.2, 0.3, 0.7]).view(3, 1)
-    image[:, shins] = image[:, shins] * shin_shade
-    image[:, shoes] = 0.05
-    image = quantise((image + 0.006 * torch.randn(3, H, W, generator=gen)).clamp(0, 1))[None]
-    return frames, image, body | shins | shoes
-
-
 def _options(**kw) -> SegmentationConfig:
     # colour alone decides the shadow test (as in test_shadow.py's bridge scene)
-    return SegmentationConfig(
-        gamma=1.0,
-        threshold=4.0,
-        shadow_test=True,
-        shadow_band=0.4,
-        shadow_ratio=(0.5, 0.95),
-        shadow_chroma=0.05,
-        shadow_noise=0.0,
-        shadow_min_texture=float("inf"),
-        **kw,
-    )
+    return SegmentationConfig(**COLOUR_SHADOW, **kw)
 
 
 def _segmented(shin_shade: float):
     """The scene's image, background model, first silhouette and shadow pixels (1, H, W),
     and the true person (H, W)."""
-    frames, image, person = _scene(shin_shade)
+    # test_shadow.py's bridge scene without its cast shadow, moved to the camera's centre
+    scene = shin_scene(left=35, shin_shade=shin_shade, cast=False)
+    frames, image = scene["frames"], scene["image"]
+    person = scene["body"] | scene["shins"] | scene["shoes"]
     options = _options()
     model = fit_background(frames, options)
     first = segment(image, model, options)

@@ -8,6 +8,7 @@ subject's ``masks/``, or ``chroma_key``."""
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field, replace
 
@@ -31,6 +32,7 @@ __all__ = [
     "segment_postures",
     "floor_reach",
     "reach_floor",
+    "floor_retry_options",
     "read_masks",
     "prepare_subject",
     "person_data",
@@ -49,10 +51,10 @@ class PreparedSubject:
         masks: (6, H, W) bool silhouettes.
         shadow: (6, H, W) bool, pixels the shadow test removed.
         seconds: time spent reading and segmenting.
-        notes: what the segmentation found or did beyond the configured chain (see
-            :func:`reach_floor`), for ``params.json``.
-        flags: the notes that make the fit doubtful (a silhouette that does not reach the
-            floor); the judge makes the subject ``poor_fit`` with them.
+        notes: what the segmentation did beyond the configured chain (a posture segmented
+            again, see :func:`reach_floor`).
+        flags: what makes the silhouettes doubtful (one that does not reach the floor); the
+            judge makes the subject ``poor_fit`` with them. ``params.json`` lists both.
     """
 
     subject: Subject
@@ -86,8 +88,8 @@ def segment_postures(
 
     Returns:
         images (6, 3, H, W) in [0, 1], silhouettes (6, H, W) bool, the pixels the shadow
-        test removed (6, H, W) bool, notes on what was found or done beyond the configured
-        chain, and the flags among them (silhouettes that do not reach the floor).
+        test removed (6, H, W) bool, notes on what was done beyond the configured chain (a
+        posture segmented again), and flags (silhouettes that do not reach the floor).
 
     Raises:
         DataError: invalid subject folder, or a mask that cannot be read or has the wrong
@@ -112,6 +114,12 @@ def segment_postures(
         model = fit_background(background, segmentation)
         seg = segment(images, model, segmentation)
         masks, shadow = seg.masks[:, 0], seg.shadow[:, 0]
+    if shadow is None:
+        shadow = torch.zeros_like(masks)
+    # before the checks below: a silhouette segmented again may pass them where the first fails
+    masks, shadow, notes, flags = reach_floor(
+        images, model, masks, shadow, subject.camera, segmentation
+    )
     missing = [
         f"pose{i + 1} ({subject.poses[i].name})"
         for i, ok in enumerate(masks.flatten(1).any(1).tolist())
@@ -123,12 +131,7 @@ def segment_postures(
     wrong = [f"pose{i + 1}: {why}" for i, why in enumerate(reasons) if why]
     if wrong:
         raise SegmentationError(f"segmentation implausible in {'; in '.join(wrong)}")
-    if shadow is None:
-        shadow = torch.zeros_like(masks)
-    masks, shadow, notes, flags = reach_floor(
-        images, model, masks, shadow, subject.camera, segmentation
-    )
-    return images, masks, shadow, notes + flags, flags
+    return images, masks, shadow, notes, flags
 
 
 def floor_reach(masks: torch.Tensor, camera: Camera) -> list[float]:
@@ -154,8 +157,15 @@ def floor_reach(masks: torch.Tensor, camera: Camera) -> list[float]:
     if pixels:
         points = floor_points(torch.tensor([pixels], dtype=torch.float64), camera)[0]
         for j, d in zip(rows, points[:, :2].norm(dim=1).tolist(), strict=True):
-            reach[j] = d if np.isfinite(d) else float("inf")
+            reach[j] = d if math.isfinite(d) else float("inf")
     return reach
+
+
+def floor_retry_options(segmentation: SegmentationOptions, band: float) -> SegmentationOptions:
+    """The options of :func:`reach_floor`'s second attempt: the shadow test confined to the
+    lowest ``band`` of the foreground (or its own band where lower), with the bridge."""
+    band = min(segmentation.shadow_band, band)
+    return replace(segmentation, shadow_bridge=True, shadow_band=band)
 
 
 def reach_floor(
@@ -206,9 +216,8 @@ def reach_floor(
         and not segmentation.shadow_bridge
     )
     if short and retry:
-        band = min(segmentation.shadow_band, getattr(segmentation, "floor_retry_band", 1.0))
-        again_options = replace(segmentation, shadow_bridge=True, shadow_band=band)
-        again = segment(images[short], model, again_options)
+        band = getattr(segmentation, "floor_retry_band", 1.0)
+        again = segment(images[short], model, floor_retry_options(segmentation, band))
         again_reach = floor_reach(again.masks[:, 0], camera)
         masks, shadow = masks.clone(), shadow.clone()
         for k, j in enumerate(short):

@@ -201,7 +201,7 @@ def fit_batch(
             seconds + prep.seconds,
         )
         document.update(facts_record(fit, i))
-        document["segmentation_notes"] = list(prep.notes)
+        document["segmentation_notes"] = prep.notes + prep.flags
         write_json(folder / "params.json", document)
         write_json(folder / "measurements.json", {**measurements, "status": str(status)})
         write_fingerprint(folder, fingerprints[name])
