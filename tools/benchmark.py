@@ -163,6 +163,10 @@ def _settings(run_dir: Path) -> dict[str, str]:
     prior = (saved.get("fit") or {}).get("prior") or {}
     if prior:
         keys["prior"] = f"{prior.get('name')}, weight {prior.get('weight')}"
+        if prior.get("pose_weight"):
+            keys["posture prior"] = (
+                f"weight {prior.get('pose_weight')}, {prior.get('pose_sigma_deg')} deg"
+            )
     if method not in (None, "autograd_lm"):  # the baseline's runs say so
         keys["method"] = method
     return {f"config {k}": str(v) for k, v in keys.items() if v is not None}

@@ -199,6 +199,7 @@ def test_params_record_the_facts_used(model, plain):
     assert record["facts_used"]["sex"] == "prior component 'male'"
     assert "weight_kg" not in record["facts_used"]  # known, recorded, not used by the fit
     assert record["prior"] == {"name": "ansur2", "weight": 0.5, "component": "male"}
+    assert record["posture_prior"] is None  # not weighed
 
 
 def test_shipped_prior_is_what_make_prior_derives(shared_data):
@@ -217,3 +218,83 @@ def test_shipped_prior_is_what_make_prior_derives(shared_data):
     assert derived["components"] == shipped["components"]
     assert shipped["components"]["male"]["n"] == 4082
     assert shipped["components"]["female"]["n"] == 1986
+
+
+def _posture_prior_problem(model, plain, pose_weight, sigma=15.0, joints=None):
+    person = person_data_from_masks(segment_subjects([plain[0]]), stack_cameras([plain[0].camera]))
+    kw = {} if joints is None else {"pose_joints": joints}
+    options = PriorOptions(pose_weight=pose_weight, pose_sigma_deg=sigma, **kw)
+    return PriorFit(model, person, prior=None, prior_options=options)
+
+
+def test_posture_prior_rows_hold_the_free_arm_angles_to_their_nominal(model, plain):
+    fit = _posture_prior_problem(model, plain, pose_weight=0.8, sigma=12.0)
+    rl, layout = fit.residual_layout, fit.layout
+    expected = []  # (column, nominal) of every free shoulder and elbow angle, posture by posture
+    for j in fit.poses:
+        block = layout.blocks[j]
+        for k, name in enumerate(layout.free_joint_names(j)):
+            if name.split("_", 1)[1] in PriorOptions().pose_joints:
+                dof = block.dofs[k]
+                expected.append((block.joints.start + k, float(fit.poser.nominal[j][dof])))
+    assert rl.num_pose_prior == len(expected) > 6 * 4  # both sides, every posture
+    g = torch.Generator().manual_seed(3)
+    x = fit.initial_params() + 0.1 * torch.randn(
+        1, fit.num_params, generator=g, dtype=torch.float64
+    )
+    got = fit.residual(x)[0, rl.pose_prior]
+    direct = torch.tensor(
+        [0.8 * (float(x[0, c]) - nom) / math.radians(12.0) for c, nom in expected]
+    )
+    torch.testing.assert_close(got, direct.to(got))
+    # at the template start every held angle is at its nominal: no cost
+    assert float(fit.residual(fit.initial_params())[0, rl.pose_prior].abs().max()) == 0.0
+    from torchfit.pipeline.run import facts_record
+
+    assert facts_record(fit, 0)["posture_prior"] == {
+        "weight": 0.8,
+        "sigma_deg": 12.0,
+        "joints": list(PriorOptions().pose_joints),
+    }
+    with pytest.raises(ConfigError, match="pose_joints.*elbow_flex"):
+        _posture_prior_problem(model, plain, pose_weight=0.8, joints=("elbow_flex",))
+    # the legs are not held
+    legs = _posture_prior_problem(model, plain, pose_weight=0.8, joints=("knee_flexion",))
+    assert legs.residual_layout.num_pose_prior == sum(
+        "knee_flexion" in n for j in fit.poses for n in layout.free_joint_names(j)
+    )
+
+
+def test_posture_prior_jacobian_rows_match_central_differences(model, plain):
+    fit = _posture_prior_problem(model, plain, pose_weight=1.5)
+    g = torch.Generator().manual_seed(4)
+    x = fit.initial_params() + 0.05 * torch.randn(
+        1, fit.num_params, generator=g, dtype=torch.float64
+    )
+    sel = fit.select(x)
+    free = fit.stage_indices(["all"], joints=True, root=True)
+    jac, r = fit.jacobian_and_residual(x, free, sel)
+    assert torch.equal(r, fit.residual(x, sel))
+    rows = fit.residual_layout.pose_prior
+    h = 1e-6
+    for p in range(free.numel()):
+        plus, minus = x.clone(), x.clone()
+        plus[0, free[p]] += h
+        minus[0, free[p]] -= h
+        fd = (fit.residual(plus, sel) - fit.residual(minus, sel))[:, rows] / (2 * h)
+        torch.testing.assert_close(jac[:, rows, p], fd, atol=1e-6, rtol=0)
+    # the solver's blocks name exactly the columns these rows depend on
+    held = [cols for sl, cols in fit.jacobian_blocks(free) if sl == rows]
+    assert len(held) == 1
+    nonzero = jac[0, rows].abs().sum(0).nonzero().flatten()
+    assert sorted(held[0].tolist()) == nonzero.tolist()
+
+
+def test_no_posture_prior_without_its_weight(model, plain):
+    fit = _posture_prior_problem(model, plain, pose_weight=0.0)
+    assert fit.residual_layout.num_pose_prior == 0
+    assert fit.residual(fit.initial_params()).shape[1] == fit.residual_layout.size
+    with pytest.raises(ConfigError, match="pose_weight"):
+        PriorOptions(pose_weight=-0.1)
+    with pytest.raises(ConfigError, match="pose_sigma_deg"):
+        PriorOptions(pose_sigma_deg=0.0)

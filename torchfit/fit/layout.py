@@ -234,12 +234,22 @@ class ParamLayout:
         return [self.dof_names[d] for d in self.blocks[j].dofs]
 
     def residual_layout(
-        self, contour_lengths: Sequence[int], num_prior: int = 0, num_facts: int = 0
+        self,
+        contour_lengths: Sequence[int],
+        num_prior: int = 0,
+        num_facts: int = 0,
+        num_pose_prior: int = 0,
     ) -> ResidualLayout:
         """The residual layout for padded person contour lengths ``C_j`` (``poses`` order),
-        with ``num_prior`` prior entries and ``num_facts`` known-fact entries after e_B."""
+        with ``num_prior`` prior entries, ``num_facts`` known-fact entries and
+        ``num_pose_prior`` posture-prior entries after e_B."""
         return ResidualLayout(
-            self.poses, tuple(contour_lengths), self.num_params, num_prior, num_facts
+            self.poses,
+            tuple(contour_lengths),
+            self.num_params,
+            num_prior,
+            num_facts,
+            num_pose_prior,
         )
 
 
@@ -253,6 +263,7 @@ class ResidualLayout:
         num_params: number of barrier entries (one per parameter).
         num_prior: number of prior entries e_S (after e_B).
         num_facts: number of known-fact entries e_H (after e_S).
+        num_pose_prior: number of posture-prior entries e_A (after e_H).
     """
 
     poses: tuple[int, ...]
@@ -260,6 +271,7 @@ class ResidualLayout:
     num_params: int
     num_prior: int = 0
     num_facts: int = 0
+    num_pose_prior: int = 0
 
     def block(self, j: int) -> slice:
         """Columns of posture j's ``[e_P..., e_M]``."""
@@ -293,9 +305,14 @@ class ResidualLayout:
         return slice(self.prior.stop, self.prior.stop + self.num_facts)
 
     @property
+    def pose_prior(self) -> slice:
+        """Columns of e_A (empty without a posture prior)."""
+        return slice(self.facts.stop, self.facts.stop + self.num_pose_prior)
+
+    @property
     def size(self) -> int:
         """M, the width of a residual row."""
-        return self.facts.stop
+        return self.pose_prior.stop
 
     def per_pose_quality(self, r: torch.Tensor) -> dict[int, tuple[float, float]]:
         """Posture -> (RMS of e_P, e_M) in pixels for one residual row ``r`` (M,)."""

@@ -59,12 +59,27 @@ class PriorOptions:
             contour RMS in one posture, when ``subject.yaml`` gives the height.
         entries: the prior's scale entries (``group:axis``) the fit uses (their marginal);
             None: all of the file's.
+        pose_weight: the posture prior's weight (0: none). It adds, for every free angle of
+            the joints ``pose_joints`` in every posture, ``pose_weight * (angle - nominal) /
+            pose_sigma_deg``: a joint ``pose_sigma_deg`` off its posture's nominal angle
+            costs as much as ``pose_weight`` pixels of contour RMS in one posture.
+        pose_sigma_deg: the posture prior's spread, degrees.
+        pose_joints: the DOFs it holds, by name without the side (``shoulder_flexion``
+            holds ``l_shoulder_flexion`` and ``r_shoulder_flexion``).
     """
 
     name: str = "ansur2"
     weight: float = 0.0
     height_tolerance_m: float = 0.005
     entries: tuple[str, ...] | None = None
+    pose_weight: float = 0.0
+    pose_sigma_deg: float = 15.0
+    pose_joints: tuple[str, ...] = (
+        "shoulder_flexion",
+        "shoulder_abduct",
+        "shoulder_twisting",
+        "elbow_flexion",
+    )
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.weight) and self.weight >= 0):
@@ -73,6 +88,14 @@ class PriorOptions:
             raise ConfigError(
                 f"fit.prior.height_tolerance_m: expected a number > 0, got "
                 f"{self.height_tolerance_m!r}"
+            )
+        if not (math.isfinite(self.pose_weight) and self.pose_weight >= 0):
+            raise ConfigError(
+                f"fit.prior.pose_weight: expected a number >= 0, got {self.pose_weight!r}"
+            )
+        if not (math.isfinite(self.pose_sigma_deg) and self.pose_sigma_deg > 0):
+            raise ConfigError(
+                f"fit.prior.pose_sigma_deg: expected a number > 0, got {self.pose_sigma_deg!r}"
             )
 
 
@@ -228,9 +251,37 @@ class PriorFit(SilhouetteFit):
             self.prior_components = comps
         heights = [f.height_m if f.height_m is not None else math.nan for f in self.facts]
         self.known_height = torch.tensor(heights, **kw)
+        self._init_pose_prior()
         self.residual_layout = self.layout.residual_layout(
-            person.contour_lengths, len(present) if self.prior is not None else 0, 1
+            person.contour_lengths,
+            len(present) if self.prior is not None else 0,
+            1,
+            int(self.pose_prior_columns.numel()),
         )
+
+    def _init_pose_prior(self) -> None:
+        """The parameter columns the posture prior holds and their nominal angles."""
+        opts = self.prior_options
+        columns, nominal = [], []
+        if opts.pose_weight > 0:
+            names = set(self.model.dof_names)
+            unknown = [d for d in opts.pose_joints if not {f"l_{d}", f"r_{d}"} & names]
+            if unknown:
+                raise ConfigError(
+                    f"fit.prior.pose_joints: {unknown} name no joint of template "
+                    f"{self.model.template.name!r} (names without the side, e.g. "
+                    f"'elbow_flexion')"
+                )
+            wanted = {f"{s}_{d}" for d in opts.pose_joints for s in "lr"}
+            for j in self.poses:
+                block = self.layout.blocks[j]
+                for k, dof in enumerate(block.dofs):
+                    if self.model.dof_names[dof] in wanted:
+                        columns.append(block.joints.start + k)
+                        nominal.append(float(self.poser.nominal[j][dof]))
+        self.pose_prior_columns = torch.tensor(columns, dtype=torch.long, device=self.model.device)
+        self.pose_prior_nominal = torch.tensor(nominal, **self.kw)
+        self.pose_prior_scale = opts.pose_weight / math.radians(opts.pose_sigma_deg)
 
     def _column(self, entry: str) -> int | None:
         group, _, axis = entry.partition(":")
@@ -271,35 +322,52 @@ class PriorFit(SilhouetteFit):
         r = (h - torch.where(known, target, h)) / self.prior_options.height_tolerance_m
         return torch.where(known, r, torch.zeros_like(r))[:, None]
 
+    def pose_prior_residual(self, full: torch.Tensor) -> torch.Tensor:
+        """(N, A) e_A of parameter rows ``full`` (N, P)."""
+        angles = full[:, self.pose_prior_columns]
+        return (angles - self.pose_prior_nominal) * self.pose_prior_scale
+
+    def _extra_residuals(self, full: torch.Tensor, rows: torch.Tensor) -> list[torch.Tensor]:
+        return [
+            self.prior_residual(full, rows),
+            self.height_residual(full, rows),
+            self.pose_prior_residual(full),
+        ]
+
     def residual(self, full, selections=None, rows=None) -> torch.Tensor:
-        """(N, M) residuals: :meth:`SilhouetteFit.residual`, then e_S and e_H."""
+        """(N, M) residuals: :meth:`SilhouetteFit.residual`, then e_S, e_H and e_A."""
         if rows is None:
             rows = torch.arange(full.shape[0], device=full.device)
         base = super().residual(full, selections, rows)
-        return torch.cat(
-            [base, self.prior_residual(full, rows), self.height_residual(full, rows)], 1
-        )
+        return torch.cat([base, *self._extra_residuals(full, rows)], 1)
+
+    def _num_extra(self) -> int:
+        rl = self.residual_layout
+        return rl.num_prior + rl.num_facts + rl.num_pose_prior
 
     def loss_units(self) -> torch.Tensor:
-        """As :meth:`SilhouetteFit.loss_units`; e_S and e_H are least squares."""
-        extra = self.residual_layout.num_prior + self.residual_layout.num_facts
-        inf = torch.full((self.batch, extra), torch.inf, **self.kw)
+        """As :meth:`SilhouetteFit.loss_units`; e_S, e_H and e_A are least squares."""
+        inf = torch.full((self.batch, self._num_extra()), torch.inf, **self.kw)
         return torch.cat([super().loss_units(), inf], 1)
 
     def residual_mask(self) -> torch.Tensor:
-        """As :meth:`SilhouetteFit.residual_mask`; e_S and e_H are always valid."""
+        """As :meth:`SilhouetteFit.residual_mask`; e_S, e_H and e_A are always valid."""
         base = super().residual_mask()
-        extra = self.residual_layout.num_prior + self.residual_layout.num_facts
-        return torch.cat([base, base.new_ones(self.batch, extra)], 1)
+        return torch.cat([base, base.new_ones(self.batch, self._num_extra())], 1)
 
     def jacobian_blocks(self, free: torch.Tensor) -> list[tuple[slice, torch.Tensor]]:
-        """As :meth:`SilhouetteFit.jacobian_blocks`, with e_S and e_H on the scales."""
+        """As :meth:`SilhouetteFit.jacobian_blocks`, with e_S and e_H on the scales and e_A
+        on the angles it holds."""
         rl = self.residual_layout
         out = super().jacobian_blocks(free)
         scale = (free < self.layout.num_scale_params).nonzero().flatten()
         for rows in (rl.prior, rl.facts):
             if rows.stop > rows.start:
                 out.append((rows, scale))
+        if rl.num_pose_prior:
+            held = torch.isin(free, self.pose_prior_columns).nonzero().flatten()
+            if held.numel():
+                out.append((rl.pose_prior, held))
         return out
 
     def jacobian_and_residual(self, full, free, selections, rows=None):
@@ -307,8 +375,12 @@ class PriorFit(SilhouetteFit):
         if rows is None:
             rows = torch.arange(full.shape[0], device=full.device)
         jac, base = super().jacobian_and_residual(full, free, selections, rows)
-        r = torch.cat([base, self.prior_residual(full, rows), self.height_residual(full, rows)], 1)
+        r = torch.cat([base, *self._extra_residuals(full, rows)], 1)
         rl = self.residual_layout
+        for a, col in enumerate(self.pose_prior_columns.tolist()):
+            hit = (free == col).nonzero().flatten()
+            if hit.numel():
+                jac[:, rl.pose_prior.start + a, int(hit[0])] = self.pose_prior_scale
         if self.prior is not None and self.prior_options.weight > 0:
             s = full[:, self.prior_columns].clamp_min(1e-3)
             d = self.prior_options.weight * self.prior_inv[rows] / s[:, None, :]  # (N, K, K)

@@ -99,7 +99,7 @@ def build_problem(model: BodyModel, person, config: Config, facts: list[dict]) -
     """
     bounds = (config.model.scale_min, config.model.scale_max)
     options = config.fit.prior
-    if options.weight == 0 and not any(facts):
+    if options.weight == 0 and options.pose_weight == 0 and not any(facts):
         return SilhouetteFit(model, person, config.fit, bounds)
     prior = load_prior(options.name) if options.weight > 0 else None
     known = [KnownFacts(**f) for f in facts]
@@ -109,7 +109,15 @@ def build_problem(model: BodyModel, person, config: Config, facts: list[dict]) -
 def facts_record(fit: SilhouetteFit, i: int) -> dict:
     """params.json's record of the prior and the known facts of subject ``i``."""
     if not isinstance(fit, PriorFit):
-        return {"prior": None, "known_facts": {}, "facts_used": {}}
+        return {"prior": None, "posture_prior": None, "known_facts": {}, "facts_used": {}}
+    opts = fit.prior_options
+    posture = None
+    if fit.residual_layout.num_pose_prior:
+        posture = {
+            "weight": opts.pose_weight,
+            "sigma_deg": opts.pose_sigma_deg,
+            "joints": list(opts.pose_joints),
+        }
     facts = fit.facts[i]
     used: dict = {}
     if facts.height_m is not None:
@@ -123,7 +131,12 @@ def facts_record(fit: SilhouetteFit, i: int) -> dict:
         prior = {"name": fit.prior.name, "weight": fit.prior_options.weight, "component": component}
         if facts.sex is not None:
             used["sex"] = f"prior component {component!r}"
-    return {"prior": prior, "known_facts": facts.to_dict(), "facts_used": used}
+    return {
+        "prior": prior,
+        "posture_prior": posture,
+        "known_facts": facts.to_dict(),
+        "facts_used": used,
+    }
 
 
 def fit_batch(
