@@ -97,3 +97,30 @@ def test_first_frame_in_mid_jump_is_placed_by_its_size(model, camera):
     assert err[1] < 0.1, err
     # standing: on the floor (the lowest pixel's floor point leaves the depth some cm off)
     assert abs(float(x[0, 2] - truth[0, 2])) < 0.03 and err[0] < 0.15, (x, truth)
+
+
+def test_first_frame_placement_undoes_the_lens_distortion(model, camera):
+    """The first frame's floor placement back-projects the silhouette's lowest pixel through
+    the lens: the same person seen through a barrel-distorted lens (the feet near the image's
+    bottom edge, where the distortion is largest) gets the start it gets through a pinhole."""
+    from torchfit.camera import Camera
+    from torchfit.pipeline.track import _start
+
+    starts, lowest = {}, {}
+    for k1 in (0.0, -0.25):
+        dist = torch.tensor([[k1, 0.0, 0.0, 0.0, 0.0]], dtype=camera.K.dtype)
+        cams = Camera(camera.K, dist, camera.R, camera.t, SIZE)
+        truth = _standing(model, cams, {"l_shoulder_abduct": 0.4, "r_shoulder_abduct": 0.4})
+        t, r, q = PoseLayout.split(truth)
+        with torch.no_grad():
+            pix = project_points(model(_ones(model, 1), q, t, r).vertices, cams)
+        mask = torch.from_numpy(render_silhouette(pix[0].numpy(), model.faces.numpy(), SIZE) > 0)
+        opts = TrackOptions(iterations=2)
+        starts[k1] = _start(model, _ones(model, 1), cams, mask[None], PoseLayout(model, opts), opts)
+        lowest[k1] = int(mask.nonzero()[:, 0].max())
+        print(f"k1 {k1}: lowest row {lowest[k1]}, start root", starts[k1][0, :3])
+    # the lens moved the lowest pixel (the test has something to undo; ignoring it put the
+    # start 4.5 cm off the pinhole's), and the start's root is where the pinhole's is
+    assert lowest[0.0] - lowest[-0.25] >= 2, lowest
+    apart = float((starts[-0.25][0, :3] - starts[0.0][0, :3]).norm())
+    assert apart < 0.02, apart

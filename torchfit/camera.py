@@ -40,6 +40,7 @@ __all__ = [
     "undistort_normalized",
     "project_points",
     "floor_points",
+    "pixel_rays",
     "projection_jacobian",
     "project_with_jacobian",
     "look_at",
@@ -321,6 +322,28 @@ def undistort_normalized(
     return torch.stack([x, y], dim=-1)
 
 
+def pixel_rays(pixels: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """World directions of the rays through pixels, the lens distortion undone.
+
+    Args:
+        pixels: (B, N, 2) pixels ``(u, v)``.
+        camera: B cameras.
+
+    Returns:
+        (B, N, 3) directions in the world frame, scaled to unit depth along the optical axis:
+        the camera centre plus ``d`` times a ray is the point at depth ``d`` (metres) that
+        the pixel sees.
+    """
+    check_shape("pixels", pixels, ("B", "N", 2))
+    K = camera.K.to(pixels)
+    # pixel -> distorted normalised coordinates (skew included), then undistorted
+    yd = (pixels[..., 1] - K[:, 1:2, 2]) / K[:, 1:2, 1]
+    xd = (pixels[..., 0] - K[:, 0:1, 2] - K[:, 0:1, 1] * yd) / K[:, 0:1, 0]
+    xy = undistort_normalized(torch.stack([xd, yd], dim=-1), camera.dist.to(pixels))
+    rays_cam = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)
+    return torch.einsum("bji,bnj->bni", camera.R.to(pixels), rays_cam)  # Rᵀ d
+
+
 def floor_points(pixels: torch.Tensor, camera: Camera) -> torch.Tensor:
     """The points of the floor (world z = 0) seen at pixels.
 
@@ -332,16 +355,8 @@ def floor_points(pixels: torch.Tensor, camera: Camera) -> torch.Tensor:
         (B, N, 3) world points on the floor; NaN where the pixel's ray does not go down to the
         floor in front of the camera (at or above the horizon).
     """
-    check_shape("pixels", pixels, ("B", "N", 2))
-    K = camera.K.to(pixels)
-    # pixel -> distorted normalised coordinates (skew included), then undistorted
-    yd = (pixels[..., 1] - K[:, 1:2, 2]) / K[:, 1:2, 1]
-    xd = (pixels[..., 0] - K[:, 0:1, 2] - K[:, 0:1, 1] * yd) / K[:, 0:1, 0]
-    xy = undistort_normalized(torch.stack([xd, yd], dim=-1), camera.dist.to(pixels))
-    rays_cam = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)
-    R = camera.R.to(pixels)
-    rays = torch.einsum("bji,bnj->bni", R, rays_cam)  # Rᵀ d: world directions
-    centre = camera_centre(R, camera.t.to(pixels))[:, None, :]
+    rays = pixel_rays(pixels, camera)
+    centre = camera_centre(camera.R.to(pixels), camera.t.to(pixels))[:, None, :]
     depth = -centre[..., 2] / rays[..., 2]
     depth = torch.where(depth > 0, depth, torch.full_like(depth, float("nan")))
     return centre + depth[..., None] * rays

@@ -32,7 +32,7 @@ import torch
 from torchfit.body.bvh import model_motion
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import facing_yaw
-from torchfit.camera import Camera, camera_centre, project_points, stack_cameras
+from torchfit.camera import Camera, camera_centre, pixel_rays, project_points, stack_cameras
 from torchfit.errors import DataError
 from torchfit.fit.person import person_data_from_masks
 from torchfit.image import SegmentationOptions, fit_background, segment
@@ -188,11 +188,12 @@ def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
     for i in range(b):
         ys, xs = torch.nonzero(mask[i], as_tuple=True)
         cam = cameras[[i]]
-        k, rot, c = cam.K[0].to(dt), cam.R[0].to(dt), centre[i]
+        k, c = cam.K[0].to(dt), centre[i]
 
-        def ray(u: float, v: float, k=k, rot=rot) -> torch.Tensor:
-            # world direction through pixel (u, v), unit depth along the optical axis
-            return rot.T @ torch.linalg.solve(k, torch.tensor([u, v, 1.0], dtype=dt))
+        def ray(u: float, v: float, cam=cam) -> torch.Tensor:
+            # world direction through pixel (u, v), unit depth along the optical axis, the
+            # lens distortion undone
+            return pixel_rays(torch.tensor([[[u, v]]], dtype=dt), cam)[0, 0]
 
         u = float(xs.float().mean())
 
