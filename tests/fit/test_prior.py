@@ -258,6 +258,11 @@ def test_posture_prior_rows_hold_the_free_arm_angles_to_their_nominal(model, pla
     }
     with pytest.raises(ConfigError, match="pose_joints.*elbow_flex"):
         _posture_prior_problem(model, plain, pose_weight=0.8, joints=("elbow_flex",))
+    # a joint without a side goes by its own name
+    spine = _posture_prior_problem(model, plain, pose_weight=0.8, joints=("vc4_tilt",))
+    assert spine.residual_layout.num_pose_prior == sum(
+        "vc4_tilt" in layout.free_joint_names(j) for j in fit.poses
+    )
     # the legs are not held
     legs = _posture_prior_problem(model, plain, pose_weight=0.8, joints=("knee_flexion",))
     assert legs.residual_layout.num_pose_prior == sum(

@@ -64,8 +64,9 @@ class PriorOptions:
             pose_sigma_deg``: a joint ``pose_sigma_deg`` off its posture's nominal angle
             costs as much as ``pose_weight`` pixels of contour RMS in one posture.
         pose_sigma_deg: the posture prior's spread, degrees.
-        pose_joints: the DOFs it holds, by name without the side (``shoulder_flexion``
-            holds ``l_shoulder_flexion`` and ``r_shoulder_flexion``).
+        pose_joints: the DOFs it holds: a limb's by name without the side
+            (``shoulder_flexion`` holds ``l_shoulder_flexion`` and ``r_shoulder_flexion``),
+            others by their own name (``vc4_tilt``).
     """
 
     name: str = "ansur2"
@@ -265,14 +266,14 @@ class PriorFit(SilhouetteFit):
         columns, nominal = [], []
         if opts.pose_weight > 0:
             names = set(self.model.dof_names)
-            unknown = [d for d in opts.pose_joints if not {f"l_{d}", f"r_{d}"} & names]
+            wanted = {n for d in opts.pose_joints for n in (d, f"l_{d}", f"r_{d}")} & names
+            unknown = [d for d in opts.pose_joints if not {d, f"l_{d}", f"r_{d}"} & names]
             if unknown:
                 raise ConfigError(
                     f"fit.prior.pose_joints: {unknown} name no joint of template "
-                    f"{self.model.template.name!r} (names without the side, e.g. "
-                    f"'elbow_flexion')"
+                    f"{self.model.template.name!r} (a limb's joints without the side, e.g. "
+                    f"'elbow_flexion', or a joint's own name, e.g. 'vc4_tilt')"
                 )
-            wanted = {f"{s}_{d}" for d in opts.pose_joints for s in "lr"}
             for j in self.poses:
                 block = self.layout.blocks[j]
                 for k, dof in enumerate(block.dofs):

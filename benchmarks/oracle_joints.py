@@ -1,0 +1,143 @@
+"""What the fit would gain from knowing where some joints are in one posture's image.
+
+A diagnostic, not a method: it reads ``truth.json``. Each subject's problem gets two more
+least-squares residuals per named joint, ``weight * (fitted pixel - true pixel)``, the joint's
+true world position (``joints_world.pose<j>``) projected with the subject's camera. Then the
+whole benchmark runs as ``tools/benchmark.py`` runs it: segmentation, start, stages, judge,
+report. If the measurements come out right with the true pixels, the information missing
+from the fit is where those joints sit in that image; if they do not, it is elsewhere.
+
+    python benchmarks/oracle_joints.py --data <dev set> --out DIR --joints l_knee,l_ankle \
+        [--pose 3] [--weight 2] [--config configs/benchmark.yaml] [--set KEY=VALUE ...]
+
+``--weight 2``: one pixel off costs as much as a posture whose contour is 2 pixels off on
+average. Only for development sets: it uses their truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib
+import importlib.util
+import sys
+from pathlib import Path
+
+import torch
+
+from torchfit.camera import project_points
+from torchfit.fit.prior import PriorFit
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+class JointPixelFit(PriorFit):
+    """:class:`PriorFit` with joint-pixel residuals appended after all its own.
+
+    Made from a built problem by :func:`attach`. The rows count as posture-prior rows in the
+    residual layout (least squares, always valid) but are dense in the solver's blocks.
+    """
+
+    def _attach(self, targets: torch.Tensor, joints: list[str], pose: int, weight: float):
+        self.targets = targets.to(**self.kw)  # (B, K, 2)
+        self.joint_names, self.joint_pose, self.joint_weight = list(joints), pose, weight
+        self.joint_segments = [self.model.template.joints[j] for j in joints]
+        self.num_joint_rows = 2 * len(joints)
+        layout = self.residual_layout
+        self.own_size = layout.size
+        self.residual_layout = dataclasses.replace(
+            layout, num_pose_prior=layout.num_pose_prior + self.num_joint_rows
+        )
+
+    def subset(self, index: list[int]) -> JointPixelFit:
+        out = super().subset(index)
+        out.__class__ = JointPixelFit
+        out._attach(self.targets[index], self.joint_names, self.joint_pose, self.joint_weight)
+        return out
+
+    def joint_residual(self, full: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """(N, 2K) ``weight * (fitted - true pixel)`` of the joints."""
+        one = torch.zeros(1, dtype=torch.long, device=full.device)  # pose no vertex but one
+        _, origins = self.pose_world(full, self.joint_pose, rows, one)
+        pixels = project_points(origins[:, self.joint_segments], self.camera[rows])
+        return (self.joint_weight * (pixels - self.targets[rows])).reshape(full.shape[0], -1)
+
+    def residual(self, full, selections=None, rows=None) -> torch.Tensor:
+        if rows is None:
+            rows = torch.arange(full.shape[0], device=full.device)
+        own = super().residual(full, selections, rows)
+        return torch.cat([own, self.joint_residual(full, rows)], 1)
+
+    def jacobian_blocks(self, free: torch.Tensor) -> list[tuple[slice, torch.Tensor]]:
+        out = []
+        held = self.residual_layout.pose_prior
+        for rows, cols in super().jacobian_blocks(free):
+            if rows == held:  # the posture prior's own rows; the joint rows stay dense
+                rows = slice(held.start, held.stop - self.num_joint_rows)
+            if rows.stop > rows.start:
+                out.append((rows, cols))
+        return out
+
+    def jacobian_and_residual(self, full, free, selections, rows=None):
+        if rows is None:
+            rows = torch.arange(full.shape[0], device=full.device)
+        jac, r = super().jacobian_and_residual(full, free, selections, rows)
+        x = full.detach().clone().requires_grad_(True)
+        with torch.enable_grad():
+            extra = self.joint_residual(x, rows)
+            for k in range(extra.shape[1]):  # row n depends on x[n] alone
+                grad = torch.autograd.grad(extra[:, k].sum(), x, retain_graph=True)[0]
+                jac[:, self.own_size + k] = grad[:, free]
+        return jac, torch.cat([r[:, : self.own_size], extra.detach()], 1)
+
+
+def attach(fit: PriorFit, subjects, joints: list[str], pose: int, weight: float) -> JointPixelFit:
+    """Turn a built problem into a :class:`JointPixelFit` for ``subjects`` (their truth)."""
+    targets = []
+    for s in subjects:
+        world = torch.tensor(
+            [[s.truth["joints_world"][f"pose{pose}"][j] for j in joints]], dtype=torch.float64
+        )
+        targets.append(project_points(world, s.camera.to(dtype=torch.float64))[0])
+    fit.__class__ = JointPixelFit
+    fit._attach(torch.stack(targets), joints, pose, weight)
+    return fit
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--joints", default="l_knee", help="comma-separated design.md joint names")
+    p.add_argument("--pose", type=int, default=3)
+    p.add_argument("--weight", type=float, default=2.0)
+    p.add_argument("--config", default=str(REPO_ROOT / "configs" / "benchmark.yaml"))
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    args = p.parse_args()
+    joints = args.joints.split(",")
+    run_module = importlib.import_module("torchfit.pipeline.run")
+    fit_batch_problem, build = run_module._fit, run_module.build_problem
+    current: dict = {}
+
+    def fit_with_subjects(prepared, *a, **kw):
+        current["subjects"] = [q.subject for q in prepared]
+        return fit_batch_problem(prepared, *a, **kw)
+
+    def build_with_joints(model, person, config, facts):
+        fit = build(model, person, config, facts)
+        if not isinstance(fit, PriorFit):  # no prior weighed: a PriorFit without one
+            fit = PriorFit(fit.model, fit.person, fit.options, fit.scale_bounds)
+        return attach(fit, current["subjects"], joints, args.pose, args.weight)
+
+    run_module._fit, run_module.build_problem = fit_with_subjects, build_with_joints
+    spec = importlib.util.spec_from_file_location("benchmark", REPO_ROOT / "tools" / "benchmark.py")
+    benchmark = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(benchmark)
+    argv = ["--config", args.config, "--data", args.data, "--out", args.out]
+    for item in ["output.tensorboard=false", "output.overlays=false", *args.set]:
+        argv += ["--set", item]
+    sys.exit(benchmark.main(argv))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,71 @@
+"""benchmarks/oracle_joints.py: the joint-pixel rows it adds to a problem (no fits)."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+from template_subjects import make_template_subject, segment_subjects
+
+from torchfit.camera import project_points, stack_cameras
+from torchfit.fit import person_data_from_masks
+from torchfit.fit.prior import PriorFit, PriorOptions
+from torchfit.io.dataset import load_subject
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tool():
+    spec = importlib.util.spec_from_file_location(
+        "oracle", REPO / "benchmarks" / "oracle_joints.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def subject(tmp_path_factory, model):
+    root = tmp_path_factory.mktemp("oracle")
+    make_template_subject(root / "s", model, scale=1.02, seed=7)
+    return load_subject(root / "s")
+
+
+def test_joint_rows_are_the_weighted_pixel_errors_and_their_jacobian(tool, model, subject):
+    person = person_data_from_masks(segment_subjects([subject]), stack_cameras([subject.camera]))
+    fit = PriorFit(model, person, prior_options=PriorOptions(pose_weight=0.5))
+    size = fit.residual_layout.size
+    targets = torch.tensor([[[200.0, 150.0], [190.0, 210.0]]], dtype=torch.float64)
+    fit.__class__ = tool.JointPixelFit
+    fit._attach(targets, ["l_knee", "l_ankle"], 3, 2.0)
+    assert fit.residual_layout.size == size + 4
+    g = torch.Generator().manual_seed(5)
+    x = fit.initial_params() + 0.03 * torch.randn(
+        1, fit.num_params, generator=g, dtype=torch.float64
+    )
+    # the rows: 2 * (the joints' pixels in posture 3 - the targets)
+    _, origins = fit.pose_world(x, 3, torch.tensor([0]))
+    segs = [model.template.joints[j] for j in ("l_knee", "l_ankle")]
+    pixels = project_points(origins[:, segs], fit.camera)
+    sel = fit.select(x)
+    r = fit.residual(x, sel)
+    torch.testing.assert_close(r[0, size:], (2.0 * (pixels - targets)).reshape(-1))
+    # their Jacobian against central differences, and the pass's residual is residual()'s
+    free = fit.stage_indices(["all"], joints=True, root=True)
+    jac, r2 = fit.jacobian_and_residual(x, free, sel)
+    torch.testing.assert_close(r2, r)
+    h = 1e-6
+    for k in range(0, free.numel(), 7):
+        plus, minus = x.clone(), x.clone()
+        plus[0, free[k]] += h
+        minus[0, free[k]] -= h
+        fd = (
+            fit.joint_residual(plus, torch.tensor([0]))
+            - fit.joint_residual(minus, torch.tensor([0]))
+        ) / (2 * h)
+        torch.testing.assert_close(jac[0, size:, k], fd[0], atol=1e-4, rtol=1e-6)
+    assert float(jac[0, size:].abs().sum()) > 0
+    # dense in the solver's blocks: no block holds the joint rows
+    for rows, _ in fit.jacobian_blocks(free):
+        assert rows.stop <= size
