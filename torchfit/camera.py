@@ -323,17 +323,9 @@ def undistort_normalized(
 
 
 def pixel_rays(pixels: torch.Tensor, camera: Camera) -> torch.Tensor:
-    """World directions of the rays through pixels, the lens distortion undone.
-
-    Args:
-        pixels: (B, N, 2) pixels ``(u, v)``.
-        camera: B cameras.
-
-    Returns:
-        (B, N, 3) directions in the world frame, scaled to unit depth along the optical axis:
-        the camera centre plus ``d`` times a ray is the point at depth ``d`` (metres) that
-        the pixel sees.
-    """
+    """(B, N, 3) world directions of the rays through pixels (B, N, 2) ``(u, v)`` of B
+    cameras, the lens distortion undone, scaled to unit depth along the optical axis: the
+    camera centre plus ``d`` times a ray is the point at depth ``d`` (metres) the pixel sees."""
     check_shape("pixels", pixels, ("B", "N", 2))
     K = camera.K.to(pixels)
     # pixel -> distorted normalised coordinates (skew included), then undistorted
