@@ -1,10 +1,8 @@
 """benchmarks/oracle_joints.py: the joint-pixel rows it adds to a problem (no fits)."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 import torch
+from scripts import load_script
 from template_subjects import make_template_subject, segment_subjects
 
 from torchfit.camera import project_points, stack_cameras
@@ -12,17 +10,10 @@ from torchfit.fit import person_data_from_masks
 from torchfit.fit.prior import PriorFit, PriorOptions
 from torchfit.io.dataset import load_subject
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location(
-        "oracle", REPO / "benchmarks" / "oracle_joints.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/oracle_joints.py")
 
 
 @pytest.fixture(scope="module")

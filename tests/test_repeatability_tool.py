@@ -1,23 +1,16 @@
 """benchmarks/repeatability.py: the noisy copy of a dataset and the change table (no fits)."""
 
-import importlib.util
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-
-REPO = Path(__file__).resolve().parents[1]
+from scripts import load_script
 
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location(
-        "repeatability", REPO / "benchmarks" / "repeatability.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/repeatability.py")
 
 
 def _subject(folder: Path, value: int) -> None:
