@@ -104,6 +104,17 @@ def test_fit_cli_config_errors(tmp_path):
     assert "not found" in proc.stderr
 
 
+def test_fit_cli_stops_on_a_posture_prior_joint_the_template_lacks(dataset, tmp_path):
+    out = tmp_path / "run"
+    proc = fit(
+        "--config", REPO / "configs/demo.yaml", "--data", dataset, "--out", out,
+        "--set", "fit.prior.pose_weight=0.5", "--set", "fit.prior.pose_joints=[elbow_flex]",
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "fit.prior.pose_joints: ['elbow_flex'] name no joint" in proc.stderr
+    assert not (out / "summary.csv").exists()  # stopped before any subject was fitted
+
+
 def test_measure_stereo_cli_says_when_no_subject_has_a_pair(dataset, tmp_path):
     # the template subjects have no stereo/ folder: each is skipped, and the tool says so
     # instead of reporting them as measured

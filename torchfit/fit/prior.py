@@ -38,6 +38,7 @@ __all__ = [
     "ScalePrior",
     "load_prior",
     "neutral_height",
+    "posture_prior_dofs",
     "PriorFit",
 ]
 
@@ -197,6 +198,23 @@ def neutral_height(model: BodyModel, layout: ParamLayout, full: torch.Tensor) ->
     return joints["head_top"][:, 2] - floor
 
 
+def posture_prior_dofs(model: BodyModel, options: PriorOptions) -> set[str]:
+    """The template DOF names the posture prior holds (``options.pose_joints``).
+
+    Raises:
+        ConfigError: a name that is no joint of the template.
+    """
+    names = set(model.dof_names)
+    unknown = [d for d in options.pose_joints if not {d, f"l_{d}", f"r_{d}"} & names]
+    if unknown:
+        raise ConfigError(
+            f"fit.prior.pose_joints: {unknown} name no joint of template "
+            f"{model.template.name!r} (a limb's joints without the side, e.g. "
+            f"'elbow_flexion', or a joint's own name, e.g. 'vc4_tilt')"
+        )
+    return {n for d in options.pose_joints for n in (d, f"l_{d}", f"r_{d}")} & names
+
+
 class PriorFit(SilhouetteFit):
     """:class:`SilhouetteFit` plus the prior's residuals e_S and the known height's e_H.
 
@@ -265,15 +283,7 @@ class PriorFit(SilhouetteFit):
         opts = self.prior_options
         columns, nominal = [], []
         if opts.pose_weight > 0:
-            names = set(self.model.dof_names)
-            wanted = {n for d in opts.pose_joints for n in (d, f"l_{d}", f"r_{d}")} & names
-            unknown = [d for d in opts.pose_joints if not {d, f"l_{d}", f"r_{d}"} & names]
-            if unknown:
-                raise ConfigError(
-                    f"fit.prior.pose_joints: {unknown} name no joint of template "
-                    f"{self.model.template.name!r} (a limb's joints without the side, e.g. "
-                    f"'elbow_flexion', or a joint's own name, e.g. 'vc4_tilt')"
-                )
+            wanted = posture_prior_dofs(self.model, opts)
             for j in self.poses:
                 block = self.layout.blocks[j]
                 for k, dof in enumerate(block.dofs):

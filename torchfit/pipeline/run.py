@@ -30,7 +30,7 @@ from torchfit.camera import stack_cameras
 from torchfit.config.loader import config_to_yaml
 from torchfit.config.schema import Config
 from torchfit.errors import ConfigError, DataError, OutputError, TorchfitError
-from torchfit.fit.prior import KnownFacts, PriorFit, load_prior
+from torchfit.fit.prior import KnownFacts, PriorFit, load_prior, posture_prior_dofs
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.io.dataset import Subject, load_dataset
 from torchfit.io.export import write_json
@@ -351,6 +351,8 @@ def run(
     # with Ray the workers fit: the driver's model (fingerprints only) stays on the CPU
     device = config.run.device if config.run.executor == "local" else "cpu"
     model = BodyModel(config.model.template, device=device, dtype=torch_dtype(config.run.dtype))
+    if config.fit.prior.pose_weight > 0:  # a name the template lacks stops the run, not each fit
+        posture_prior_dofs(model, config.fit.prior)
     run_fp = Fingerprint(config_digest(config), template_digest(model.template))
     done, fingerprints = _kept(subjects, run_fp, run_dir, config.run.resume)
     todo = [s for s in subjects if s.name not in done]
