@@ -255,19 +255,20 @@ def test_floor_points_invert_the_projection_of_floor_points():
     assert bool(torch.isnan(floor_points(above, cam)).all())
 
 
-def test_pixel_rays_pass_through_what_the_pixels_see():
-    from torchfit.camera import pixel_rays, world_to_camera
+def test_ray_directions_pass_through_what_the_pixels_see():
+    from torchfit.camera import ray_directions, world_to_camera
 
     cam = _simple_camera()  # with distortion
     gen = torch.Generator().manual_seed(2)
     points = torch.rand(1, 30, 3, generator=gen, dtype=torch.float64) * 1.6 - 0.8
     points[..., 2] += 1.0
-    rays = pixel_rays(project_points(points, cam), cam)
+    rays = ray_directions(project_points(points, cam), cam)
     depth = world_to_camera(points, cam)[..., 2:]
     centre = camera_centre(cam.R, cam.t)[:, None, :]
     # the camera centre plus depth times the ray is the point itself (unit optical-axis depth)
     torch.testing.assert_close(centre + depth * rays, points, atol=1e-6, rtol=0)
     # undoing the distortion matters here: the rays of the pinhole alone miss by millimetres
     pinhole = Camera(cam.K, torch.zeros_like(cam.dist), cam.R, cam.t, cam.image_size)
-    off = (centre + depth * pixel_rays(project_points(points, cam), pinhole) - points).norm(dim=-1)
+    pinhole_rays = ray_directions(project_points(points, cam), pinhole)
+    off = (centre + depth * pinhole_rays - points).norm(dim=-1)
     assert float(off.max()) > 1e-3

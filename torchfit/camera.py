@@ -39,8 +39,9 @@ __all__ = [
     "distort_normalized",
     "undistort_normalized",
     "project_points",
+    "undistort_pixels",
+    "ray_directions",
     "floor_points",
-    "pixel_rays",
     "projection_jacobian",
     "project_with_jacobian",
     "look_at",
@@ -298,42 +299,42 @@ def distort_normalized(xy: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
 def undistort_normalized(
     xy: torch.Tensor, dist: torch.Tensor, iterations: int = 20
 ) -> torch.Tensor:
-    """Invert :func:`distort_normalized` by fixed-point iteration (as ``cv2.undistortPoints``).
-
-    Args:
-        xy: (B, N, 2) distorted normalised coordinates.
-        dist: (B, 5) ``(k1, k2, p1, p2, k3)`` (B may be 1, broadcast).
-        iterations: fixed-point steps (20 reach 1e-10 for the distortion of real lenses).
-
-    Returns:
-        (B, N, 2) undistorted normalised coordinates.
-    """
+    """(B, N, 2) undistorted normalised coordinates of distorted ones ``xy`` (B, N, 2), lens
+    ``dist`` (B or 1, 5) ``(k1, k2, p1, p2, k3)``: :func:`distort_normalized` inverted by
+    fixed-point iteration as ``cv2.undistortPoints`` does (20 steps reach 1e-10 for real
+    lenses)."""
     check_shape("xy", xy, ("B", "N", 2))
     check_shape("dist", dist, (None, 5))
     k1, k2, p1, p2, k3 = (dist[:, i : i + 1] for i in range(5))
     xd, yd = xy[..., 0], xy[..., 1]
     x, y = xd, yd
     for _ in range(iterations):
-        xx, yy, xy_ = x * x, y * y, x * y
-        r2 = xx + yy
+        r2 = x * x + y * y
         radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        x = (xd - 2 * p1 * xy_ - p2 * (r2 + 2 * xx)) / radial
-        y = (yd - p1 * (r2 + 2 * yy) - 2 * p2 * xy_) / radial
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        x = (xd - dx) / radial
+        y = (yd - dy) / radial
     return torch.stack([x, y], dim=-1)
 
 
-def pixel_rays(pixels: torch.Tensor, camera: Camera) -> torch.Tensor:
-    """(B, N, 3) world directions of the rays through pixels (B, N, 2) ``(u, v)`` of B
-    cameras, the lens distortion undone, scaled to unit depth along the optical axis: the
-    camera centre plus ``d`` times a ray is the point at depth ``d`` (metres) the pixel sees."""
+def undistort_pixels(pixels: torch.Tensor, camera: Camera, iterations: int = 20) -> torch.Tensor:
+    """(B, N, 2) undistorted normalised coordinates ``(X/Z, Y/Z)`` of (B, N, 2) pixels
+    ``(u, v)`` of B cameras (or one, broadcast): ``K`` undone (skew included), then the lens."""
     check_shape("pixels", pixels, ("B", "N", 2))
     K = camera.K.to(pixels)
-    # pixel -> distorted normalised coordinates (skew included), then undistorted
     yd = (pixels[..., 1] - K[:, 1:2, 2]) / K[:, 1:2, 1]
     xd = (pixels[..., 0] - K[:, 0:1, 2] - K[:, 0:1, 1] * yd) / K[:, 0:1, 0]
-    xy = undistort_normalized(torch.stack([xd, yd], dim=-1), camera.dist.to(pixels))
-    rays_cam = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)
-    return torch.einsum("bji,bnj->bni", camera.R.to(pixels), rays_cam)  # Rᵀ d
+    return undistort_normalized(torch.stack([xd, yd], dim=-1), camera.dist.to(pixels), iterations)
+
+
+def ray_directions(pixels: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """(B, N, 3) world directions of the rays through pixels (B, N, 2), the lens distortion
+    undone, scaled to unit depth along the optical axis: the camera centre plus ``d`` times a
+    direction is the point at depth ``d`` (metres) the pixel sees."""
+    xy = undistort_pixels(pixels, camera)
+    d_cam = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)
+    return d_cam @ camera.R.to(pixels)  # (R^T d)^T = d^T R, row vectors
 
 
 def floor_points(pixels: torch.Tensor, camera: Camera) -> torch.Tensor:
@@ -347,7 +348,7 @@ def floor_points(pixels: torch.Tensor, camera: Camera) -> torch.Tensor:
         (B, N, 3) world points on the floor; NaN where the pixel's ray does not go down to the
         floor in front of the camera (at or above the horizon).
     """
-    rays = pixel_rays(pixels, camera)
+    rays = ray_directions(pixels, camera)
     centre = camera_centre(camera.R.to(pixels), camera.t.to(pixels))[:, None, :]
     depth = -centre[..., 2] / rays[..., 2]
     depth = torch.where(depth > 0, depth, torch.full_like(depth, float("nan")))

@@ -215,6 +215,13 @@ def posture_prior_dofs(model: BodyModel, options: PriorOptions) -> set[str]:
     return {n for d in options.pose_joints for n in (d, f"l_{d}", f"r_{d}")} & names
 
 
+def _free_positions(columns: torch.Tensor, free: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The entries of ``columns`` (parameter columns) that are free, and their positions in
+    ``free`` (the stage's free columns, each listed once)."""
+    entries, at = (columns[:, None] == free[None, :].to(columns.device)).nonzero(as_tuple=True)
+    return entries, at
+
+
 class PriorFit(SilhouetteFit):
     """:class:`SilhouetteFit` plus the prior's residuals e_S and the known height's e_H.
 
@@ -388,17 +395,13 @@ class PriorFit(SilhouetteFit):
         jac, base = super().jacobian_and_residual(full, free, selections, rows)
         r = torch.cat([base, *self._extra_residuals(full, rows)], 1)
         rl = self.residual_layout
-        for a, col in enumerate(self.pose_prior_columns.tolist()):
-            hit = (free == col).nonzero().flatten()
-            if hit.numel():
-                jac[:, rl.pose_prior.start + a, int(hit[0])] = self.pose_prior_scale
+        held, at = _free_positions(self.pose_prior_columns, free)
+        jac[:, rl.pose_prior.start + held, at] = self.pose_prior_scale
         if self.prior is not None and self.prior_options.weight > 0:
             s = full[:, self.prior_columns].clamp_min(1e-3)
             d = self.prior_options.weight * self.prior_inv[rows] / s[:, None, :]  # (N, K, K)
-            for k, col in enumerate(self.prior_columns.tolist()):
-                hit = (free == col).nonzero().flatten()
-                if hit.numel():
-                    jac[:, rl.prior, int(hit[0])] = d[:, :, k]
+            entries, at = _free_positions(self.prior_columns, free)
+            jac[:, rl.prior, at] = d[:, :, entries]
         known = ~torch.isnan(self.known_height[rows])
         scale_pos = (free < self.layout.num_scale_params).nonzero().flatten()
         if bool(known.any()) and scale_pos.numel():

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from torchfit.camera import Camera, camera_centre, project_points
+from torchfit.camera import Camera, camera_centre, project_points, ray_directions, undistort_pixels
 from torchfit.errors import check_shape
 from torchfit.parts.errors import PartsError
 
@@ -38,35 +38,6 @@ STEREO_MEASUREMENT_KEYS: tuple[str, ...] = (
 )
 
 
-def undistort_pixels(pixels: torch.Tensor, camera: Camera, iterations: int = 20) -> torch.Tensor:
-    """Undistorted normalised image coordinates of distorted pixels.
-
-    Args:
-        pixels: (B, N, 2) ``(u, v)`` pixels.
-        camera: B cameras (or one, broadcast).
-        iterations: fixed-point iterations (OpenCV uses the same scheme).
-
-    Returns:
-        (B, N, 2) ``(X/Z, Y/Z)`` in the camera frame.
-    """
-    check_shape("pixels", pixels, ("B", "N", 2))
-    K = camera.K.to(pixels)
-    fx, fy = K[:, 0:1, 0], K[:, 1:2, 1]
-    cx, cy, skew = K[:, 0:1, 2], K[:, 1:2, 2], K[:, 0:1, 1]
-    yd = (pixels[..., 1] - cy) / fy
-    xd = (pixels[..., 0] - cx - skew * yd) / fx
-    k1, k2, p1, p2, k3 = (camera.dist.to(pixels)[:, i : i + 1] for i in range(5))
-    x, y = xd, yd
-    for _ in range(iterations):
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        x = (xd - dx) / radial
-        y = (yd - dy) / radial
-    return torch.stack([x, y], dim=-1)
-
-
 def pixel_rays(pixels: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
     """World-frame viewing rays of pixels.
 
@@ -77,12 +48,9 @@ def pixel_rays(pixels: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torc
     Returns:
         ``(origins, directions)``: (B, N, 3) camera centres and (B, N, 3) unit directions.
     """
-    xy = undistort_pixels(pixels, camera)
-    d_cam = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)
-    R = camera.R.to(pixels)
-    d_world = d_cam @ R  # (R^T d)^T = d^T R, row vectors
+    d_world = ray_directions(pixels, camera)
     d_world = d_world / torch.linalg.vector_norm(d_world, dim=-1, keepdim=True)
-    centre = camera_centre(R, camera.t.to(pixels))
+    centre = camera_centre(camera.R.to(pixels), camera.t.to(pixels))
     return centre[:, None, :].expand_as(d_world), d_world
 
 

@@ -32,7 +32,14 @@ import torch
 from torchfit.body.bvh import model_motion
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import facing_yaw
-from torchfit.camera import Camera, camera_centre, pixel_rays, project_points, stack_cameras
+from torchfit.camera import (
+    Camera,
+    camera_centre,
+    floor_points,
+    project_points,
+    ray_directions,
+    stack_cameras,
+)
 from torchfit.errors import DataError
 from torchfit.fit.person import person_data_from_masks
 from torchfit.image import SegmentationOptions, fit_background, segment
@@ -189,26 +196,17 @@ def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
         ys, xs = torch.nonzero(mask[i], as_tuple=True)
         cam = cameras[[i]]
         k, c = cam.K[0].to(dt), centre[i]
-
-        def ray(u: float, v: float, cam=cam) -> torch.Tensor:
-            # world direction through pixel (u, v), unit depth along the optical axis, the
-            # lens distortion undone
-            return pixel_rays(torch.tensor([[[u, v]]], dtype=dt), cam)[0, 0]
-
         u = float(xs.float().mean())
-
-        def floor(v: float, u=u, ray=ray, c=c) -> torch.Tensor:
-            # the floor point seen at pixel row v (column u)
-            d = ray(u, v)
-            return c - c[2] / d[2] * d if abs(float(d[2])) > 1e-9 else c
-
-        # standing: the floor point under the silhouette's lowest pixel
-        ground = floor(float(ys.max()))
-        # sized: the body's mid-height on the ray through the silhouette's mid-height
         top, bottom = float(ys.min()), float(ys.max())
+        pixels = torch.tensor([[[u, bottom], [u, 0.5 * (top + bottom)]]], dtype=dt)
+        # standing: the floor point under the silhouette's lowest pixel (the camera's own
+        # spot where that pixel sees no floor)
+        ground = floor_points(pixels[:, :1], cam)[0, 0]
+        ground = torch.where(torch.isnan(ground), c, ground)
+        # sized: the body's mid-height on the ray through the silhouette's mid-height
         height = float(z[i].max() - z[i].min())
         depth = float(k[1, 1]) * height / max(bottom - top, 1.0)
-        sized = c + depth * ray(u, 0.5 * (top + bottom))
+        sized = c + depth * ray_directions(pixels[:, 1:], cam)[0, 0]
         sized[2] -= 0.5 * float(z[i].max() + z[i].min())
         for place, pz in ((ground, None), (sized, float(sized[2]))):
             for turn in _TURNS:
