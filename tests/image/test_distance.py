@@ -143,8 +143,8 @@ def test_sample_distance_map_errors() -> None:
     dist = torch.zeros(2, 1, 5, 5)
     with pytest.raises(ShapeError, match=r"points: expected shape \(2, N, 2\)"):
         sample_distance_map(dist, torch.zeros(1, 3, 2))
-    with pytest.raises(ShapeError, match="points: expected dtype"):
-        sample_distance_map(dist, torch.zeros(2, 3, 2, dtype=torch.float64))
+    with pytest.raises(ShapeError, match="expected floating tensors"):
+        sample_distance_map(dist, torch.zeros(2, 3, 2, dtype=torch.int64))
     with pytest.raises(ShapeError, match=r"dist: expected shape \(B, 1, H, W\)"):
         sample_distance_map(torch.zeros(2, 5, 5), torch.zeros(2, 3, 2))
 
@@ -209,3 +209,21 @@ def test_sample_distance_map_rows_equals_the_former_fit_sampler_bitwise() -> Non
     )
     with pytest.raises(ShapeError, match=r"rows: expected shape \(5\)"):
         sample_distance_map(dmap.unsqueeze(1), points, rows[:4])
+
+
+def test_a_float32_map_samples_as_its_float64_copy_bitwise() -> None:
+    """The person's maps are kept in float32: read at float64 points, every value and
+    derivative is that of the float64 copy (the corners are cast before they are blended)."""
+    gen = torch.Generator().manual_seed(4)
+    whole = torch.randint(0, 300, (3, 1, 12, 17), generator=gen).to(torch.float32) / 3.0
+    rows = torch.tensor([2, 0, 1, 1])
+    points = torch.rand(4, 30, 2, generator=gen, dtype=torch.float64) * 22 - 3
+    p32 = points.clone().requires_grad_(True)
+    p64 = points.clone().requires_grad_(True)
+    a = sample_distance_map(whole, p32, rows)
+    b = sample_distance_map(whole.double(), p64, rows)
+    assert a.dtype == torch.float64
+    assert torch.equal(a, b)
+    a.square().sum().backward()
+    b.square().sum().backward()
+    assert torch.equal(p32.grad, p64.grad)

@@ -24,7 +24,10 @@ class PersonData:
     Attributes:
         contours: J tensors (B, C_j, 2) of person contour pixels (u, v), padded.
         valid: J bool tensors (B, C_j).
-        distance_maps: J tensors (B, H, W): D_P, pixels to the person's contour (finite).
+        distance_maps: J tensors (B, H, W): D_P, pixels to the person's contour (finite),
+            float32 whatever the contours' dtype (the distance transforms compute them in
+            float32; :func:`torchfit.image.sample_distance_map` reads them in the
+            points' dtype, so a float64 copy would only double their memory).
         camera: B cameras.
         uncertain: optional J bool tensors (B, H, W): pixels where the silhouette is not to be
             trusted (those the segmentation's shadow test removed). A model contour point on
@@ -89,7 +92,7 @@ def person_data_from_masks(
         camera: B cameras.
         method: distance transform, ``"chamfer"`` (the paper's 3-4) or ``"euclidean"``.
         stride: keep every ``stride``-th contour pixel.
-        dtype: dtype of the contours and distance maps.
+        dtype: dtype of the contours (the distance maps are float32).
         uncertain: optional (B, J, H, W) bool, pixels where the silhouette is not to be
             trusted (:attr:`torchfit.image.SegmentationResult.shadow`): person contour
             pixels within ``margin_px`` of one do not count in e_P, and model contour points
@@ -135,9 +138,9 @@ def person_data_from_masks(
         contours.append(pts)
         valid.append(ok)
         if crop_margin_px is None:
-            dmap = mask_to_distance_map(masks[:, k : k + 1], method)[:, 0].to(dtype)
+            dmap = mask_to_distance_map(masks[:, k : k + 1], method)[:, 0]
         else:
-            dmap = _cropped_distance_map(masks[:, k], method, crop_margin_px).to(dtype)
+            dmap = _cropped_distance_map(masks[:, k], method, crop_margin_px)
         maps.append(torch.nan_to_num(dmap, posinf=float(h + w)))
     flags = None if uncertain is None else [uncertain[:, k] for k in range(n_pose)]
     return PersonData(contours, valid, maps, camera, flags)

@@ -231,7 +231,7 @@ class SilhouetteFit:
 
     def _sample_rows(self, k: int, rows: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
         """Bilinear D_P of pose index k for each row's subject at (N, n, 2) points."""
-        dmap = self.person.distance_maps[k].to(points.dtype)  # (B, H, W)
+        dmap = self.person.distance_maps[k]  # (B, H, W), read in the points' dtype
         return sample_distance_map(dmap.unsqueeze(1), points, rows)
 
     def _terms(

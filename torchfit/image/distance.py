@@ -283,16 +283,19 @@ def sample_distance_map(
     and in forward mode (dual tensors), piecewise bilinear with kinks on the pixel grid lines.
 
     Args:
-        dist: ``(B, 1, H, W)`` floating maps (``H, W >= 2``).
-        points: ``(N, P, 2)`` ``(u, v)`` pixels, same dtype and device as ``dist``; without
-            ``rows``, ``N = B`` and row ``i`` samples map ``i``.
+        dist: ``(B, 1, H, W)`` floating maps (``H, W >= 2``), on the device of ``points``. Their
+            dtype may differ from the points': the four neighbours' values are cast to the
+            points' dtype before they are blended (float32 maps of whole pixel distances
+            sample as float64 maps would, at half the memory).
+        points: ``(N, P, 2)`` ``(u, v)`` floating pixels; without ``rows``, ``N = B`` and row
+            ``i`` samples map ``i``.
         rows: optional ``(N,)`` integer index of the map each row of ``points`` samples.
 
     Returns:
-        ``(N, P)`` sampled distances.
+        ``(N, P)`` sampled distances, in the points' dtype.
 
     Raises:
-        ShapeError: for wrongly shaped inputs or a ``points`` dtype other than ``dist``'s.
+        ShapeError: for wrongly shaped inputs, or maps or points that are not floating.
     """
     check_shape("dist", dist, ("B", 1, "H", "W"))
     if rows is None:
@@ -304,9 +307,9 @@ def sample_distance_map(
     h, w = dist.shape[-2:]
     if h < 2 or w < 2:
         raise ShapeError(f"dist: expected H, W >= 2 for bilinear sampling, got {tuple(dist.shape)}")
-    if not (dist.is_floating_point() and points.dtype == dist.dtype):
+    if not (dist.is_floating_point() and points.is_floating_point()):
         raise ShapeError(
-            f"points: expected dtype {dist.dtype} (that of a floating dist), got {points.dtype}"
+            f"dist, points: expected floating tensors, got {dist.dtype} and {points.dtype}"
         )
     dmap = dist[:, 0]
     u = points[..., 0].clamp(0, w - 1)
@@ -316,6 +319,6 @@ def sample_distance_map(
     fu, fv = u - u0, v - v0
     u0, v0 = u0.long(), v0.long()
     r = rows[:, None].expand_as(u0)
-    d00, d01 = dmap[r, v0, u0], dmap[r, v0, u0 + 1]
-    d10, d11 = dmap[r, v0 + 1, u0], dmap[r, v0 + 1, u0 + 1]
+    at = lambda dv, du: dmap[r, v0 + dv, u0 + du].to(points.dtype)  # noqa: E731
+    d00, d01, d10, d11 = at(0, 0), at(0, 1), at(1, 0), at(1, 1)
     return (d00 * (1 - fu) + d01 * fu) * (1 - fv) + (d10 * (1 - fu) + d11 * fu) * fv

@@ -48,6 +48,7 @@ from torchfit.io.camera import load_camera
 from torchfit.io.export import write_json
 from torchfit.io.files import make_dirs, write_atomic
 from torchfit.io.images import list_images, load_frames, write_image
+from torchfit.io.prefetch import prefetch
 from torchfit.io.video import read_video, video_frame_count
 from torchfit.measurements import JOINT_NAMES
 from torchfit.track import PoseLayout, TrackOptions, solve_frame, track
@@ -289,7 +290,8 @@ def track_sequences(
         frames, _ = load_frames(s.background, s.camera.image_size)
         backgrounds.append(fit_background(frames, config.segmentation))
     layout = PoseLayout(model, config.track)
-    masks = _masks(sequences, backgrounds, config.segmentation)
+    # the next frames are read and segmented while this one is tracked
+    masks = prefetch(_masks(sequences, backgrounds, config.segmentation))
     first = next(masks)
     start = _start(model, scales, cameras, first, layout, config.track)
 
