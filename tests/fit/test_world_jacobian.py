@@ -71,3 +71,17 @@ def test_floor_contact_at_a_tie_takes_the_mean_of_both_soles(model):
     down = (at - poser.world(minus, 1, rows, index)[0]) / h
     assert float((up - down).abs().max()) > 1e-3  # a kink: the lower sole changes
     torch.testing.assert_close(d_world[..., roll], 0.5 * (up + down), atol=1e-6, rtol=0)
+
+
+def test_world_postures_is_world_of_each_posture_bitwise(model):
+    """The contour choice poses the six postures in one model call; each posture's vertices
+    are bit for bit those of its own call (the rows of a model call are independent)."""
+    poser, layout = _poser(model)
+    g = torch.Generator().manual_seed(7)
+    x = layout.initial(dtype=torch.float64).expand(2, -1).clone()
+    x = x + 0.05 * torch.randn(x.shape, generator=g, dtype=torch.float64)
+    rows = torch.tensor([1, 0])
+    together = poser.world_postures(x, [1, 2, 3, 4, 5, 6], rows)
+    assert len(together) == 6
+    for j, verts in zip([1, 2, 3, 4, 5, 6], together, strict=True):
+        assert torch.equal(verts, poser.world(x, j, rows)[0])

@@ -160,6 +160,22 @@ class Poser:
         lift_z = torch.stack([zero, zero, floor], -1)[:, None]
         return verts[:, :-2] - lift_z, out.origins - lift_z
 
+    def world_postures(
+        self, full: torch.Tensor, poses: list[int], rows: torch.Tensor
+    ) -> list[torch.Tensor]:
+        """Every template vertex of several postures, standing on the floor, from one model
+        call over all their rows (the kinematics' cost is mostly per call): per posture in
+        ``poses``, the (N, V, 3) vertices :meth:`world` gives with ``vertex_index=None``."""
+        states = [self.state(full, j, rows) for j in poses]
+        scales, angles, rot, trans = (torch.cat(part) for part in zip(*states, strict=True))
+        everything = torch.arange(self.model.template.vertices.shape[0], device=full.device)
+        idx = torch.cat([everything, torch.tensor(self.soles, device=full.device)])
+        verts = self.model(scales, angles, trans, rot, vertex_index=idx).vertices
+        floor = torch.minimum(verts[:, -2, 2], verts[:, -1, 2])
+        zero = torch.zeros_like(floor)
+        verts = verts[:, :-2] - torch.stack([zero, zero, floor], -1)[:, None]
+        return list(verts.split(full.shape[0]))
+
     def columns(self, j: int) -> torch.Tensor:
         """(C_j,) the parameter columns posture j depends on, in the order of
         :meth:`world_jacobian`'s derivatives: every scale, then the posture's block."""

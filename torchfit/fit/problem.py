@@ -217,8 +217,9 @@ class SilhouetteFit:
         if rows is None:
             rows = torch.arange(full.shape[0], device=full.device)
         out = {}
+        posed = self.poser.world_postures(full, list(self.poses), rows)
         for k, j in enumerate(self.poses):
-            pixels = self.pose_pixels(full, j, rows)
+            pixels = self.project(posed[k], rows)
             out[j] = select_contour(
                 self.sampler,
                 pixels,
