@@ -240,6 +240,42 @@ def test_analytic_frame_jacobian_matches_central_differences(model, camera):
     assert err.max() < 1e-4 * (1 + jac[keep].abs().max()), err.max()
 
 
+def test_the_frame_jacobian_reuses_the_residuals_pass_only_at_its_point(model, camera, monkeypatch):
+    """After the residual at x, the Jacobian at x takes that evaluation's kinematics pass;
+    at any other point it makes its own. Either way it is the Jacobian a fresh problem gives,
+    bit for bit."""
+    from torchfit.fit.model_contour import EdgeSampler, select_contour
+    from torchfit.track.frame import _FrameResidual, _pixels
+
+    opts = TrackOptions()
+    layout = PoseLayout(model, opts)
+    truth = _pose(model, layout, camera, {"l_shoulder_abduct": 0.8})[None]
+    person = person_data_from_masks(_masks(model, camera, truth)[:, None], camera, stride=3)
+    g = torch.Generator().manual_seed(3)
+    x = layout.clip(truth + 0.03 * torch.randn(truth.shape, generator=g, dtype=torch.float64))
+    other = layout.clip(x + 0.01)
+    scales = torch.ones(1, model.num_segments, 3, dtype=torch.float64)
+    sampler = EdgeSampler(model.faces, opts.samples_per_edge)
+    pix, _ = _pixels(model, scales, camera, x, None)
+    sel = select_contour(sampler, pix, person.contours[0], person.valid[0], SIZE, 1.0)
+    rows = torch.arange(1)
+
+    def problem():
+        return _FrameResidual(model, scales, person, layout, truth, sampler, sel)
+
+    passes = []
+    real = model.pose_pass
+    monkeypatch.setattr(model, "pose_pass", lambda *a: passes.append(1) or real(*a))
+    used = problem()
+    used(x, rows)
+    for at, made in ((x, 0), (other, 1)):  # the residual's point, then another
+        before = len(passes)
+        jac, r0 = used.analytic_jacobian(at, rows)
+        assert len(passes) - before == made
+        fresh_jac, fresh_r0 = problem().analytic_jacobian(at, rows)
+        assert torch.equal(jac, fresh_jac) and torch.equal(r0, fresh_r0)
+
+
 def test_a_solve_uses_its_own_options_weights(model, camera):
     # the layout is made once from the tracker's options; a start or a restart solves with
     # other temporal weights, and those are the ones that count

@@ -111,3 +111,15 @@ def _has_ancestor(model, s: int, a: int) -> bool:
         if s == a:
             return True
     return False
+
+
+def test_the_kinematics_pass_handed_back_gives_the_same_jacobian_bitwise(model):
+    """pose_pass poses the points as forward does, and pose_jacobian on it is pose_jacobian
+    alone, bit for bit (the tracker's residual hands its pass to the Jacobian that follows)."""
+    scales, q, t, r = _random_pose(model, 3, seed=11, root_angle=0.7)
+    index = torch.arange(0, model.template.vertices.shape[0], 7)
+    passed = model.pose_pass(scales, q, t, r, index)
+    assert torch.equal(passed[2].vertices, model(scales, q, t, r, index).vertices)
+    alone = model.pose_jacobian(scales, q, t, r, index)
+    handed = model.pose_jacobian(scales, q, t, r, index, passed)
+    assert torch.equal(alone[0], handed[0]) and torch.equal(alone[1], handed[1])

@@ -311,6 +311,24 @@ class BodyModel(torch.nn.Module):
         turn = torch.linalg.cross(axes[:, :, None].expand_as(rel), rel)
         return (turn * moves[..., None]).transpose(2, 3)
 
+    def pose_pass(
+        self,
+        scales: torch.Tensor,
+        joint_angles: torch.Tensor,
+        root_translation: torch.Tensor,
+        root_rotation: torch.Tensor,
+        vertex_index: torch.Tensor,
+    ) -> tuple:
+        """The kinematics pass of :meth:`pose_jacobian` alone (arguments as there): a tuple
+        whose third item is the posed :class:`BodyOutput` (its vertices as :meth:`forward`
+        gives them). Handed back to :meth:`pose_jacobian` at the same pose, it spares the
+        pass: a solver that evaluates its residual at a point and then, once the step is
+        accepted, the Jacobian there, poses the body once."""
+        check_shape("root_rotation", root_rotation, ("B", 3))
+        rot_root = axis_angle_to_matrix(root_rotation)
+        passed = self._posed_frames(scales, joint_angles, root_translation, rot_root, vertex_index)
+        return (rot_root, *passed)
+
     def pose_jacobian(
         self,
         scales: torch.Tensor,
@@ -318,6 +336,7 @@ class BodyModel(torch.nn.Module):
         root_translation: torch.Tensor,
         root_rotation: torch.Tensor,
         vertex_index: torch.Tensor,
+        passed: tuple | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Posed vertices and their derivatives w.r.t. the pose, in closed form.
 
@@ -333,16 +352,17 @@ class BodyModel(torch.nn.Module):
             scales, joint_angles, root_translation: as :meth:`forward`.
             root_rotation: (B, 3) axis-angle (the derivative is w.r.t. it).
             vertex_index: (K,) template vertices to pose.
+            passed: :meth:`pose_pass` of these same arguments, if the caller has it.
 
         Returns:
             (B, K, 3) vertices (as :meth:`forward` gives them) and (B, K, 3, 6 + Q) their
             Jacobian w.r.t. ``[root_translation, root_rotation, joint_angles]``.
         """
-        check_shape("root_rotation", root_rotation, ("B", 3))
-        rot_root = axis_angle_to_matrix(root_rotation)
-        frames, out, seg = self._posed_frames(
-            scales, joint_angles, root_translation, rot_root, vertex_index
-        )
+        if passed is None:
+            passed = self.pose_pass(
+                scales, joint_angles, root_translation, root_rotation, vertex_index
+            )
+        rot_root, frames, out, seg = passed
         p = out.vertices  # (B, K, 3)
         b, k = p.shape[:2]
         q = self.num_dofs

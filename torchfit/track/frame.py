@@ -188,6 +188,7 @@ class _FrameResidual:
         self.sample_valid = selection.sample_valid
         self.n_model = selection.sample_valid.sum(1).clamp_min(1)
         self.n_person = self.valid.sum(1).clamp_min(1)
+        self._last = None  # (rows, index, kinematics pass) of the last residual evaluation
 
     def _endpoints(self, p: torch.Tensor, index: torch.Tensor) -> dict[str, torch.Tensor]:
         """Each residual entry's own copy of its edge endpoints' pixels (N, n, 2)."""
@@ -240,7 +241,12 @@ class _FrameResidual:
         return [e_t, e_f, *self._neutral(xr)], self.soles[lowest.indices[:, 0]]
 
     def __call__(self, xr: torch.Tensor, index: torch.Tensor):
-        p, world = _pixels(self.model, self.scales[index], self.camera[index], xr, self.verts)
+        t, r, q = PoseLayout.split(xr)
+        passed = self.model.pose_pass(self.scales[index], q, t, r, self.verts)
+        # the solver asks for the Jacobian where it accepts a step: the pass is kept for it
+        self._last = (xr.clone(), index.clone(), passed)
+        world = passed[2].vertices
+        p = project_points(world, self.camera[index])
         e_p, e_m = self._contour_terms(self._endpoints(p, index), index)
         others, _ = self._other_terms(xr, world, index)
         return torch.cat([e_p, e_m, *others], 1), self._mask(index)
@@ -251,7 +257,10 @@ class _FrameResidual:
         each residual entry's derivative w.r.t. its own endpoint pixels (reverse mode)."""
         n, p_count = xr.shape
         t, r, q = PoseLayout.split(xr)
-        world, d_world = self.model.pose_jacobian(self.scales[index], q, t, r, self.verts)
+        last, passed = self._last, None
+        if last is not None and torch.equal(last[1], index) and torch.equal(last[0], xr):
+            passed = last[2]  # the residual was evaluated here: its kinematics pass serves
+        world, d_world = self.model.pose_jacobian(self.scales[index], q, t, r, self.verts, passed)
         pix, d_pix = project_with_jacobian(world, d_world, self.camera[index])
         ends = {k: v.detach().requires_grad_(True) for k, v in self._endpoints(pix, index).items()}
         with torch.enable_grad():
