@@ -42,3 +42,18 @@ def test_an_empty_frame_gives_the_whole_image_map():
     a = person_data_from_masks(masks, camera).distance_maps[0]
     b = person_data_from_masks(masks, camera, crop_margin_px=4).distance_maps[0]
     torch.testing.assert_close(a, b)
+
+
+@pytest.mark.parametrize("method", ["chamfer", "euclidean"])
+def test_the_maps_are_those_of_each_silhouettes_outer_contour_bitwise(method):
+    """D_P is seeded by the outlines the contours were traced from: it is
+    mask_to_distance_map's map of the silhouette, bit for bit (a second region, here a speck
+    apart from the body, is no seed: only the region holding the first pixel is traced)."""
+    from torchfit.image.distance import mask_to_distance_map
+
+    masks = _blobs()
+    masks[0, 0, 5:8, 140:150] = True  # a speck before the body in raster order
+    camera = nominal_view(image_size=(160, 120))[[0, 0]]
+    got = person_data_from_masks(masks, camera, method=method).distance_maps[0]
+    want = torch.nan_to_num(mask_to_distance_map(masks, method)[:, 0], posinf=280.0)
+    assert torch.equal(got, want)

@@ -12,7 +12,7 @@ import torch
 from torchfit.camera import Camera
 from torchfit.errors import ShapeError
 from torchfit.image.contours import trace_outer_contour
-from torchfit.image.distance import mask_to_distance_map
+from torchfit.image.distance import distance_map
 
 __all__ = ["PersonData", "person_data_from_masks"]
 
@@ -125,7 +125,8 @@ def person_data_from_masks(
         ).bool()
     contours, valid, maps = [], [], []
     for k in range(n_pose):
-        traced = [trace_outer_contour(masks[i, k])[::stride] for i in range(b)]
+        outlines = [trace_outer_contour(masks[i, k]) for i in range(b)]
+        traced = [c[::stride] for c in outlines]
         n = max(1, max(len(c) for c in traced))
         pts = torch.zeros(b, n, 2, dtype=dtype)
         ok = torch.zeros(b, n, dtype=torch.bool)
@@ -137,26 +138,34 @@ def person_data_from_masks(
                 ok[i, : len(c)] &= ~near[i, k, c[:, 1], c[:, 0]]
         contours.append(pts)
         valid.append(ok)
+        # D_P's seeds are the traced outlines (what mask_to_distance_map would trace again)
+        seeds = torch.zeros(b, h, w, dtype=torch.bool, device=masks.device)
+        for i, c in enumerate(outlines):
+            c = c.to(masks.device)
+            seeds[i, c[:, 1], c[:, 0]] = True
         if crop_margin_px is None:
-            dmap = mask_to_distance_map(masks[:, k : k + 1], method)[:, 0]
+            dmap = distance_map(seeds[:, None], method)[:, 0]
         else:
-            dmap = _cropped_distance_map(masks[:, k], method, crop_margin_px)
+            dmap = _cropped_distance_map(masks[:, k], seeds, method, crop_margin_px)
         maps.append(torch.nan_to_num(dmap, posinf=float(h + w)))
     flags = None if uncertain is None else [uncertain[:, k] for k in range(n_pose)]
     return PersonData(contours, valid, maps, camera, flags)
 
 
-def _cropped_distance_map(masks: torch.Tensor, method: str, margin: int) -> torch.Tensor:
-    """(B, H, W) distance maps of (B, H, W) silhouettes computed on their common box grown by
-    ``margin`` (see :func:`person_data_from_masks`, ``crop_margin_px``)."""
+def _cropped_distance_map(
+    masks: torch.Tensor, seeds: torch.Tensor, method: str, margin: int
+) -> torch.Tensor:
+    """(B, H, W) distance maps to the (B, H, W) ``seeds`` (the outlines of the silhouettes
+    ``masks``) computed on the silhouettes' common box grown by ``margin`` (see
+    :func:`person_data_from_masks`, ``crop_margin_px``)."""
     b, h, w = masks.shape
     rows = masks.any(0).any(1).nonzero().flatten()
     cols = masks.any(0).any(0).nonzero().flatten()
     if rows.numel() == 0:  # no silhouette at all: the whole image, as without a crop
-        return mask_to_distance_map(masks[:, None], method)[:, 0]
+        return distance_map(seeds[:, None], method)[:, 0]
     y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin, h - 1)
     x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin, w - 1)
-    crop = mask_to_distance_map(masks[:, None, y0 : y1 + 1, x0 : x1 + 1], method)
+    crop = distance_map(seeds[:, None, y0 : y1 + 1, x0 : x1 + 1], method)
     # outside the box: the nearest box pixel's value plus the distance to it
     pad = (x0, w - 1 - x1, y0, h - 1 - y1)
     edge = torch.nn.functional.pad(crop, pad, mode="replicate")[:, 0]
