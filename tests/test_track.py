@@ -202,11 +202,12 @@ def test_a_video_tracks_like_its_frames(model, camera, tmp_path):
     assert [r.split(",")[5] for r in a] == [r.split(",")[5] for r in b]  # same contour RMS
 
 
-def test_analytic_frame_jacobian_matches_central_differences(model, camera):
+@pytest.mark.parametrize("depth", [0.0, 50.0])
+def test_analytic_frame_jacobian_matches_central_differences(model, camera, depth):
     from torchfit.fit.model_contour import EdgeSampler, select_contour
     from torchfit.track.frame import _FrameResidual, _pixels
 
-    opts = TrackOptions()
+    opts = TrackOptions(temporal_depth=depth)  # with and without the limbs' depth pull
     layout = PoseLayout(model, opts)
     truth = _pose(model, layout, camera, {"l_shoulder_abduct": 0.8, "r_knee_flexion": 0.5})[None]
     person = person_data_from_masks(_masks(model, camera, truth)[:, None], camera, stride=3)

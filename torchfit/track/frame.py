@@ -6,10 +6,11 @@ residuals are the fit's (:mod:`torchfit.fit.residuals`): e_P, each person contou
 distance to the model contour over ``sqrt(|C_P|)``, and the person's contour distance map
 sampled at the model contour points (e_M per point, over ``sqrt(|C_M|)``), plus a temporal
 term ``w ⊙ (x - x_pred)`` towards the prediction (:mod:`torchfit.track.tracker`), a soft floor
-contact of the lowest sole point and a pull of the twists towards neutral. Joint limits are
-the solver's bounds. The discrete model-contour choice (:func:`torchfit.fit.model_contour.
-select_contour`) is made at the start of each of ``rounds`` solves. The Jacobian is in closed
-form (:meth:`_FrameResidual.analytic_jacobian`).
+contact of the lowest sole point, a pull of the twists towards neutral and one of the limb
+joints' depths (along their camera rays, from the shoulder or hip) towards the prediction's.
+Joint limits are the solver's bounds. The discrete model-contour choice
+(:func:`torchfit.fit.model_contour.select_contour`) is made at the start of each of ``rounds``
+solves. The Jacobian is in closed form (:meth:`_FrameResidual.analytic_jacobian`).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import torch
 
 from torchfit.body.model import BodyModel
-from torchfit.camera import Camera, project_points, project_with_jacobian
+from torchfit.camera import Camera, camera_centre, project_points, project_with_jacobian
 from torchfit.fit.model_contour import (
     EdgeSampler,
     contour_endpoints,
@@ -34,6 +35,13 @@ from torchfit.solver import LMOptions, levenberg_marquardt
 __all__ = ["TrackOptions", "FrameResult", "PoseLayout", "solve_frame"]
 
 _STEP = 1e-6
+
+#: limb joint whose depth the ``temporal_depth`` term holds -> the joint its limb hangs from.
+_DEPTH_JOINTS = {
+    f"{s}_{j}": f"{s}_{base}"
+    for s in ("l", "r")
+    for j, base in (("elbow", "shoulder"), ("wrist", "shoulder"), ("knee", "hip"), ("ankle", "hip"))
+}
 
 
 @dataclass(frozen=True)
@@ -65,6 +73,14 @@ class TrackOptions:
         twist_weight: pull of the twists (DOFs named ``*twisting`` and ``*torsion``)
             towards neutral (0), pixels per radian: a silhouette hardly shows a limb turning
             about itself, and a twist left free drifts frame after frame (0 turns it off).
+        temporal_depth: temporal weight of each limb joint's depth (elbows, wrists, knees,
+            ankles), pixels per metre: its offset from the joint its limb hangs from (shoulder,
+            hip) along its camera ray (the prediction's), towards the prediction's (from the
+            limb's own joint, not the root: the trunk leaning or turning stays free). A
+            silhouette shows a limb across the ray and hides it along the ray (an arm in front
+            of or behind the body), where the angle pulls alone let it drift from frame to
+            frame; this holds only that direction, so a limb still follows what the
+            silhouette shows (0 turns it off).
         velocity_damping: the prediction is ``x_{t-1} + velocity_damping (x_{t-1} - x_{t-2})``
             (1: constant velocity, 0: the last pose).
         ftol, xtol: the solver's stopping tolerances (:class:`torchfit.solver.LMOptions`):
@@ -94,6 +110,7 @@ class TrackOptions:
     xtol: float = 1e-3
     velocity_damping: float = 0.0
     twist_weight: float = 20.0
+    temporal_depth: float = 15.0
 
 
 class PoseLayout:
@@ -107,11 +124,22 @@ class PoseLayout:
         self.lower = torch.cat([-inf, model.joint_lower.to(**kw)])
         self.upper = torch.cat([inf, model.joint_upper.to(**kw)])
         self._twist = torch.tensor([n.endswith(("twisting", "torsion")) for n in model.dof_names])
+        #: (2, K) per limb joint and the joint its limb hangs from, the vertex of the segment
+        #: starting there nearest to the joint (it moves with the joint)
+        t = model.template
+
+        def near(joint: str) -> int:
+            idx = torch.nonzero(t.vertex_segment == t.joints[joint]).flatten()
+            return int(idx[t.vertices[idx].norm(dim=1).argmin()])
+
+        pairs = [(near(j), near(b)) for j, b in _DEPTH_JOINTS.items() if {j, b} <= set(t.joints)]
+        self.depth_vertices = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2).T.contiguous()
         self._set_weights(options)
 
     def _set_weights(self, options: TrackOptions) -> None:
         kw = {"dtype": self.lower.dtype, "device": self.lower.device}
         self.floor_weight = options.floor_weight
+        self.depth_weight = options.temporal_depth if self.depth_vertices.shape[1] else 0.0
         #: (Q,) pull of each joint angle towards neutral, or None
         self.neutral = (
             (options.twist_weight * self._twist).to(**kw) if options.twist_weight else None
@@ -179,8 +207,12 @@ class _FrameResidual:
         soles = [marks[k] for k in ("l_sole", "r_sole", "l_toe", "r_toe") if k in marks]
         self.floor_weight = layout.floor_weight if soles else 0.0
         extra = torch.tensor(soles, dtype=torch.long, device=ep.model_a.device)
-        self.verts = torch.unique(torch.cat([ep.vertices(), extra]))
+        limbs = layout.depth_vertices.to(extra.device)
+        limbs = limbs if layout.depth_weight else limbs[:, :0]
+        self.verts = torch.unique(torch.cat([ep.vertices(), extra, limbs.flatten()]))
         self.soles = torch.searchsorted(self.verts, extra)
+        self.limbs, self.bases = torch.searchsorted(self.verts, limbs)
+        self._depth_target(prediction, limbs)
         where = lambda idx: torch.searchsorted(self.verts, idx)  # noqa: E731
         self.ma, self.mb = where(ep.model_a), where(ep.model_b)
         self.pa, self.pb = where(ep.person_a), where(ep.person_b)
@@ -189,6 +221,20 @@ class _FrameResidual:
         self.n_model = selection.sample_valid.sum(1).clamp_min(1)
         self.n_person = self.valid.sum(1).clamp_min(1)
         self._last = None  # (rows, index, kinematics pass) of the last residual evaluation
+
+    def _depth_target(self, prediction: torch.Tensor, limbs: torch.Tensor) -> None:
+        """Per row, each limb joint's camera ray (B, K, 3) and the prediction's offset of the
+        joint from the one its limb hangs from, along that ray (B, K)."""
+        if not limbs.shape[1]:
+            return
+        t, r, q = PoseLayout.split(prediction)
+        with torch.no_grad():
+            world = self.model(self.scales, q, t, r, vertex_index=limbs.flatten()).vertices
+        joint, base = world.reshape(world.shape[0], 2, -1, 3).unbind(1)
+        centre = camera_centre(self.camera.R, self.camera.t).to(world)
+        ray = joint - centre[:, None]
+        self.rays = ray / ray.norm(dim=-1, keepdim=True)
+        self.depth = ((joint - base) * self.rays).sum(-1)
 
     def _endpoints(self, p: torch.Tensor, index: torch.Tensor) -> dict[str, torch.Tensor]:
         """Each residual entry's own copy of its edge endpoints' pixels (N, n, 2)."""
@@ -220,12 +266,20 @@ class _FrameResidual:
     def _mask(self, index: torch.Tensor) -> torch.Tensor:
         valid_p, valid_m = self.valid[index], self.sample_valid[index]
         extra = 0 if self.layout.neutral is None else self.layout.num_params - 6
+        extra += len(self.limbs)
         rest = torch.ones(valid_p.shape[0], self.layout.num_params + 1 + extra, dtype=torch.bool)
         return torch.cat([valid_p, valid_m, rest.to(valid_p.device)], 1)
 
     def _neutral(self, xr: torch.Tensor) -> list[torch.Tensor]:
         """The pull of the joint angles towards neutral (the twists), as a list of 0 or 1."""
         return [] if self.layout.neutral is None else [self.layout.neutral * xr[:, 6:]]
+
+    def _limb_depth(self, xr: torch.Tensor, world: torch.Tensor, index: torch.Tensor):
+        """The limb joints' depth pull (a list of 0 or 1 (N, K) terms)."""
+        if not len(self.limbs):
+            return []
+        rel = world[:, self.limbs] - world[:, self.bases]
+        return [self.layout.depth_weight * ((rel * self.rays[index]).sum(-1) - self.depth[index])]
 
     def _other_terms(
         self, xr: torch.Tensor, world: torch.Tensor, index: torch.Tensor
@@ -234,11 +288,12 @@ class _FrameResidual:
         sole point on z = 0, soft) and the twists' pull; and, per row, the index in
         ``self.verts`` of the lowest sole point (None without soles)."""
         e_t = self.layout.weights * (xr - self.prediction[index])
+        limbs = self._limb_depth(xr, world, index)
         if not len(self.soles):
-            return [e_t, xr[:, :1] * 0, *self._neutral(xr)], None
+            return [e_t, xr[:, :1] * 0, *self._neutral(xr), *limbs], None
         lowest = world[:, self.soles, 2].min(1, keepdim=True)
         e_f = self.floor_weight * lowest.values
-        return [e_t, e_f, *self._neutral(xr)], self.soles[lowest.indices[:, 0]]
+        return [e_t, e_f, *self._neutral(xr), *limbs], self.soles[lowest.indices[:, 0]]
 
     def __call__(self, xr: torch.Tensor, index: torch.Tensor):
         t, r, q = PoseLayout.split(xr)
@@ -292,6 +347,10 @@ class _FrameResidual:
             j_n = torch.zeros(n, p_count - 6, p_count, dtype=xr.dtype, device=xr.device)
             j_n[:, :, 6:] = torch.diag(self.layout.neutral.to(xr))
             jac.append(j_n)
+        if len(self.limbs):
+            d_rel = d_world[:, self.limbs] - d_world[:, self.bases]
+            j_d = (self.rays[index][..., None] * d_rel).sum(2)
+            jac.append(self.layout.depth_weight * j_d)
         return torch.cat(jac, 1), r0
 
     def batched_jacobian(self, xr: torch.Tensor, index: torch.Tensor):
