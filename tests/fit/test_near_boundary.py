@@ -1,5 +1,5 @@
-"""The model contour's "near the rendered outline" test on a cropped distance transform equals
-the test on the whole image's distance transform."""
+"""The model contour's "near the rendered outline" test (a look-up of the pixel offsets within
+the tolerance) equals the test on the whole image's exact distance transform."""
 
 import cv2
 import numpy as np
@@ -11,7 +11,7 @@ from torchfit.viz.raster import outer_outlines
 
 @pytest.mark.parametrize("seed", range(6))
 @pytest.mark.parametrize("tolerance", [0.5, 1.0, 2.5])
-def test_cropped_distance_transform_gives_the_whole_image_answer(seed, tolerance):
+def test_the_offset_look_up_gives_the_distance_transforms_answer(seed, tolerance):
     rng = np.random.default_rng(seed)
     h, w = 120, 160
     mask = np.zeros((h, w), np.uint8)
