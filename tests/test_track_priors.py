@@ -98,6 +98,11 @@ def test_first_frame_in_mid_jump_is_placed_by_its_size(model, camera):
     assert err[1] < 0.1, err
     # standing: on the floor (the lowest pixel's floor point leaves the depth some cm off)
     assert abs(float(x[0, 2] - truth[0, 2])) < 0.03 and err[0] < 0.15, (x, truth)
+    # the start's own pull holds the sized placement: at the frames' weaker pull the floor
+    # term draws the jumping start down
+    weak = TrackOptions(iterations=2, start_translation=opts.temporal_translation)
+    y = _start(model, _ones(model, 2), cams, masks, PoseLayout(model, weak), weak)
+    assert float((y[1, :3] - truth[1, :3]).norm()) > float(err[1]) + 0.02, (y, x)
 
 
 def test_first_frame_placement_undoes_the_lens_distortion(model, camera):

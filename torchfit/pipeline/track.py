@@ -78,12 +78,6 @@ _TURNS = tuple(math.radians(d) for d in (-45.0, -20.0, 0.0, 20.0, 45.0))
 #: than the floor placement's.
 _OFF_FLOOR = 2.0
 
-#: the first frame's pull of the root towards its placement, pixels per metre (at least):
-#: the placement is measured on the silhouette (its lowest pixel or its size), the tracker's
-#: prediction is only the last pose; with the tracker's weaker pull the floor term drew a
-#: start in mid-jump down (tests/test_track_priors.py).
-_PLACED = 100.0
-
 
 @dataclass
 class TrackConfig:
@@ -240,13 +234,13 @@ def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
         crop_margin_px=options.distance_margin_px,
     ).subset(torch.arange(b).repeat_interleave(n))
     # held towards the neutral start by the tracker's own temporal weights and priors (the
-    # layout's), the root at least at _PLACED; free root and 0.5 px/rad on the joints gave
+    # layout's), the root at start_translation; free root and 0.5 px/rad on the joints gave
     # worse starts on 01_01 clips (mean joint error 182, 65, 140 mm against 83, 79, 114 mm)
     opts = replace(
         options,
         iterations=3 * options.iterations,
         rounds=3,
-        temporal_translation=max(options.temporal_translation, _PLACED),
+        temporal_translation=options.start_translation,
     )
     res = solve_frame(model, sc, person, layout, x0, x0, opts)
     # the floor placement unless the sized one explains the silhouette far better (someone

@@ -56,6 +56,10 @@ class TrackOptions:
             through its size, which a lean in depth fakes: 1 m of depth moves the RMS by a few
             pixels, so a stiff pull (100) held the root where the last frame left it while the
             person walked or jumped 10-50 cm along the camera ray.
+        start_translation: the first frame's pull of the root towards its placement, pixels
+            per metre (the placement is measured on the silhouette: its lowest pixel on the
+            floor, or its size; with the tracker's weaker pull the floor term drew a start in
+            mid-jump down).
         temporal_rotation: temporal weight of the root rotation, pixels per radian.
         temporal_joints: temporal weight of the joint angles, pixels per radian.
         samples_per_edge: model contour candidates per mesh edge.
@@ -95,6 +99,7 @@ class TrackOptions:
     iterations: int = 8
     rounds: int = 2
     temporal_translation: float = 20.0
+    start_translation: float = 100.0
     temporal_rotation: float = 5.0
     temporal_joints: float = 2.0
     samples_per_edge: int = 2
