@@ -295,3 +295,25 @@ def test_a_solve_uses_its_own_options_weights(model, camera):
     assert (stuck.x - start).abs().max() < 1e-4
     k = 6 + model.dof_index("l_shoulder_abduct")
     assert abs(float(moved.x[0, k]) - 0.8) < abs(float(start[0, k]) - 0.8) / 2
+
+
+def test_track_tool_threads(tmp_path, capsys):
+    """tools/track.py leaves one core to the thread that reads and segments the next frames
+    (torch takes one thread fewer than the cores, at least 1), and rejects --threads 0 with
+    exit code 2."""
+    from scripts import load_script
+
+    from torchfit.pipeline.runtime import cpu_count
+
+    tool = load_script("tools/track.py")
+    base = ["--config", "configs/track.yaml", "--sequence", str(tmp_path), "--out", str(tmp_path)]
+    with pytest.raises(SystemExit) as exc:
+        tool.main([*base, "--model", str(tmp_path), "--threads", "0"])
+    assert exc.value.code == 2
+    assert "--threads must be >= 1" in capsys.readouterr().err
+    before = torch.get_num_threads()
+    try:
+        assert tool.main([*base, "--model", str(tmp_path / "no_fit")]) == 4  # no params.json
+        assert torch.get_num_threads() == max(1, cpu_count() - 1)
+    finally:
+        torch.set_num_threads(before)

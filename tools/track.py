@@ -54,11 +54,20 @@ def main(argv: list[str] | None = None) -> int:
         "(truth.json), to measure the tracker alone",
     )
     parser.add_argument("--overlays", action="store_true", help="write overlay/<frame>.png")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch CPU threads (default: one fewer than the cores, at least 1: the remaining "
+        "core reads and segments the next frames meanwhile)",
+    )
     args = parser.parse_args(argv)
+    if args.threads is not None and args.threads < 1:
+        parser.error(f"--threads must be >= 1, got {args.threads}")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    from torchfit.pipeline.runtime import cpu_count
+
+    torch.set_num_threads(args.threads or max(1, cpu_count() - 1))
     from torchfit.body.model import BodyModel
     from torchfit.pipeline.tensorboard import TensorBoardCallback
     from torchfit.pipeline.track import (
