@@ -220,12 +220,12 @@ def select_contour(
         outlines = outer_outlines(mask)
         bpix = (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
         p = pts[i]
-        ui = np.clip(np.rint(p[:, 0]), 0, w - 1).astype(np.int64)
-        vi = np.clip(np.rint(p[:, 1]), 0, h - 1).astype(np.int64)
         inside = (p[:, 0] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < h - 0.5)
         candidate = np.repeat(sampler.silhouette_edges(px[i].numpy()), sampler.k)
         on = np.flatnonzero(candidate & inside)
-        on = on[_near_boundary(bpix, ui[on], vi[on], (w, h), tolerance)]
+        ui = np.clip(np.rint(p[on, 0]), 0, w - 1).astype(np.int64)
+        vi = np.clip(np.rint(p[on, 1]), 0, h - 1).astype(np.int64)
+        on = on[_near_boundary(bpix, ui, vi, (w, h), tolerance)]
         chosen.append(on)
         valid = person_valid[i].cpu().numpy()
         if len(on) and valid.any():

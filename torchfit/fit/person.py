@@ -11,7 +11,7 @@ import torch
 
 from torchfit.camera import Camera
 from torchfit.errors import ShapeError
-from torchfit.image.contours import trace_outer_contour
+from torchfit.image.contours import outline_mask, trace_outer_contour
 from torchfit.image.distance import distance_map
 
 __all__ = ["PersonData", "person_data_from_masks"]
@@ -139,12 +139,9 @@ def person_data_from_masks(
         contours.append(pts)
         valid.append(ok)
         # D_P's seeds are the traced outlines (what mask_to_distance_map would trace again)
-        seeds = torch.zeros(b, h, w, dtype=torch.bool, device=masks.device)
-        for i, c in enumerate(outlines):
-            c = c.to(masks.device)
-            seeds[i, c[:, 1], c[:, 0]] = True
+        seeds = outline_mask(outlines, h, w, masks.device)
         if crop_margin_px is None:
-            dmap = distance_map(seeds[:, None], method)[:, 0]
+            dmap = distance_map(seeds, method)[:, 0]
         else:
             dmap = _cropped_distance_map(masks[:, k], seeds, method, crop_margin_px)
         maps.append(torch.nan_to_num(dmap, posinf=float(h + w)))
@@ -155,17 +152,17 @@ def person_data_from_masks(
 def _cropped_distance_map(
     masks: torch.Tensor, seeds: torch.Tensor, method: str, margin: int
 ) -> torch.Tensor:
-    """(B, H, W) distance maps to the (B, H, W) ``seeds`` (the outlines of the silhouettes
+    """(B, H, W) distance maps to the (B, 1, H, W) ``seeds`` (the outlines of the silhouettes
     ``masks``) computed on the silhouettes' common box grown by ``margin`` (see
     :func:`person_data_from_masks`, ``crop_margin_px``)."""
     b, h, w = masks.shape
     rows = masks.any(0).any(1).nonzero().flatten()
     cols = masks.any(0).any(0).nonzero().flatten()
     if rows.numel() == 0:  # no silhouette at all: the whole image, as without a crop
-        return distance_map(seeds[:, None], method)[:, 0]
+        return distance_map(seeds, method)[:, 0]
     y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin, h - 1)
     x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin, w - 1)
-    crop = distance_map(seeds[:, None, y0 : y1 + 1, x0 : x1 + 1], method)
+    crop = distance_map(seeds[..., y0 : y1 + 1, x0 : x1 + 1], method)
     # outside the box: the nearest box pixel's value plus the distance to it
     pad = (x0, w - 1 - x1, y0, h - 1 - y1)
     edge = torch.nn.functional.pad(crop, pad, mode="replicate")[:, 0]

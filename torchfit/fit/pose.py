@@ -148,17 +148,7 @@ class Poser:
         Returns:
             (N, K, 3) vertices and (N, S, 3) segment origins, metres, world frame.
         """
-        scales, angles, rot, trans = self.state(full, j, rows)
-        soles = torch.tensor(self.soles, device=full.device)
-        if vertex_index is None:
-            vertex_index = torch.arange(self.model.template.vertices.shape[0], device=full.device)
-        idx = torch.cat([vertex_index, soles])
-        out = self.model(scales, angles, trans, rot, vertex_index=idx)
-        verts = out.vertices
-        floor = torch.minimum(verts[:, -2, 2], verts[:, -1, 2])
-        zero = torch.zeros_like(floor)
-        lift_z = torch.stack([zero, zero, floor], -1)[:, None]
-        return verts[:, :-2] - lift_z, out.origins - lift_z
+        return self._on_floor(self.state(full, j, rows), vertex_index)
 
     def world_postures(
         self, full: torch.Tensor, poses: list[int], rows: torch.Tensor
@@ -167,14 +157,25 @@ class Poser:
         call over all their rows (the kinematics' cost is mostly per call): per posture in
         ``poses``, the (N, V, 3) vertices :meth:`world` gives with ``vertex_index=None``."""
         states = [self.state(full, j, rows) for j in poses]
-        scales, angles, rot, trans = (torch.cat(part) for part in zip(*states, strict=True))
-        everything = torch.arange(self.model.template.vertices.shape[0], device=full.device)
-        idx = torch.cat([everything, torch.tensor(self.soles, device=full.device)])
-        verts = self.model(scales, angles, trans, rot, vertex_index=idx).vertices
+        state = tuple(torch.cat(part) for part in zip(*states, strict=True))
+        return list(self._on_floor(state, None)[0].split(full.shape[0]))
+
+    def _on_floor(
+        self, state: tuple, vertex_index: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Vertices ``vertex_index`` (default: all) and segment origins of the posed
+        :meth:`state`, lifted so that the lower sole touches z = 0."""
+        scales, angles, rot, trans = state
+        device = scales.device
+        if vertex_index is None:
+            vertex_index = torch.arange(self.model.template.vertices.shape[0], device=device)
+        idx = torch.cat([vertex_index, torch.tensor(self.soles, device=device)])
+        out = self.model(scales, angles, trans, rot, vertex_index=idx)
+        verts = out.vertices
         floor = torch.minimum(verts[:, -2, 2], verts[:, -1, 2])
         zero = torch.zeros_like(floor)
-        verts = verts[:, :-2] - torch.stack([zero, zero, floor], -1)[:, None]
-        return list(verts.split(full.shape[0]))
+        lift_z = torch.stack([zero, zero, floor], -1)[:, None]
+        return verts[:, :-2] - lift_z, out.origins - lift_z
 
     def columns(self, j: int) -> torch.Tensor:
         """(C_j,) the parameter columns posture j depends on, in the order of

@@ -21,7 +21,12 @@ from torchfit.image.background import (
     fit_background,
     mahalanobis_distance,
 )
-from torchfit.image.contours import contour_mask, outer_contours, trace_outer_contour
+from torchfit.image.contours import (
+    contour_mask,
+    outer_contours,
+    outline_mask,
+    trace_outer_contour,
+)
 from torchfit.image.distance import (
     chamfer_distance_transform,
     distance_map,
@@ -80,6 +85,7 @@ __all__ = [
     "trace_outer_contour",
     "outer_contours",
     "contour_mask",
+    "outline_mask",
     "chamfer_distance_transform",
     "euclidean_distance_transform",
     "distance_map",

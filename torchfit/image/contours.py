@@ -15,7 +15,7 @@ import torch
 
 from torchfit.errors import ShapeError, check_shape
 
-__all__ = ["trace_outer_contour", "outer_contours", "contour_mask"]
+__all__ = ["trace_outer_contour", "outer_contours", "contour_mask", "outline_mask"]
 
 # The 8 neighbours, clockwise on screen (v down): E, SE, S, SW, W, NW, N, NE, as (du, dv).
 _DIRS = ((1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1))
@@ -112,7 +112,24 @@ def contour_mask(masks: torch.Tensor) -> torch.Tensor:
         ``(B, 1, H, W)`` bool, ``True`` on the pixels of :func:`outer_contours`.
     """
     _check_masks("masks", masks)
-    out = torch.zeros_like(masks)
-    for b, pts in enumerate(outer_contours(masks)):
+    return outline_mask(outer_contours(masks), masks.shape[-2], masks.shape[-1], masks.device)
+
+
+def outline_mask(
+    outlines: list[torch.Tensor], height: int, width: int, device: torch.device | str = "cpu"
+) -> torch.Tensor:
+    """Rasterise traced outlines, one per image (e.g. :func:`trace_outer_contour`'s).
+
+    Args:
+        outlines: ``B`` tensors ``(N_b, 2)`` of ``(u, v)`` pixels.
+        height, width: the image size.
+        device: where the mask goes.
+
+    Returns:
+        ``(B, 1, H, W)`` bool, ``True`` on the outlines' pixels.
+    """
+    out = torch.zeros(len(outlines), 1, height, width, dtype=torch.bool, device=device)
+    for b, pts in enumerate(outlines):
+        pts = pts.to(device)
         out[b, 0, pts[:, 1], pts[:, 0]] = True
     return out
