@@ -304,12 +304,13 @@ class BodyModel(torch.nn.Module):
         dof_rot = rot_root[:, None] @ frames[:, dof_frames]  # (B, Q', 3, 3)
         axes = (dof_rot @ dof_axes[..., None])[..., 0]  # (B, Q', 3) world axes
         pivots = out.origins[:, dof_pivot]  # (B, Q', 3)
-        moves = dof_moves[:, seg].to(p.dtype)  # (Q', K)
-        # elementwise for every DOF and point (a batched product would round a row by its
-        # batch)
-        rel = p[:, None] - pivots[:, :, None]  # (B, Q', K, 3)
-        turn = torch.linalg.cross(axes[:, :, None].expand_as(rel), rel)
-        return (turn * moves[..., None]).transpose(2, 3)
+        # elementwise, for the (DOF, point) pairs where the DOF moves the point only (a batched
+        # product would round a row by its batch)
+        k, i = dof_moves[:, seg].nonzero().unbind(1)
+        turn = torch.linalg.cross(axes[:, k], p[:, i] - pivots[:, k])  # (B, n, 3)
+        full = p.new_zeros(p.shape[0], len(dof_pivot), p.shape[1], 3)
+        full[:, k, i] = turn
+        return full.transpose(2, 3)
 
     def pose_pass(
         self,

@@ -286,6 +286,7 @@ def levenberg_marquardt(
         nfev=s["nfev"],
         njev=s["njev"],
         damping=s["mu"],
+        residual=s["r"],
     )
 
 

@@ -79,6 +79,7 @@ class LMResult:
             acceleration probes included).
         njev: ``(B,)`` int64, Jacobian evaluations.
         damping: ``(B,)`` final damping ``mu``.
+        residual: ``(B, M)`` the residual at ``x`` (the last one evaluated there), or None.
     """
 
     x: torch.Tensor
@@ -88,6 +89,7 @@ class LMResult:
     nfev: torch.Tensor
     njev: torch.Tensor
     damping: torch.Tensor
+    residual: torch.Tensor | None = None
 
     @property
     def statuses(self) -> list[LMStatus]:

@@ -197,11 +197,37 @@ def _pixels(model, scales, camera, x, vertex_index):
     return project_points(out.vertices, camera), out.vertices
 
 
+def _limbs(layout: PoseLayout) -> torch.Tensor:
+    """(2, K) the limb joints' vertices and those of the joints they hang from (K = 0 when
+    the depth pull is off)."""
+    limbs = layout.depth_vertices
+    return limbs if layout.depth_weight else limbs[:, :0]
+
+
+def _depth_target(model, scales, camera, prediction, layout):
+    """Per row, each limb joint's camera ray (B, K, 3) and the prediction's offset of the
+    joint from the one its limb hangs from, along that ray (B, K) (None, None without limbs).
+    """
+    limbs = _limbs(layout)
+    if not limbs.shape[1]:
+        return None, None
+    t, r, q = PoseLayout.split(prediction)
+    with torch.no_grad():
+        world = model(scales, q, t, r, vertex_index=limbs.flatten()).vertices
+    joint, base = world.reshape(world.shape[0], 2, -1, 3).unbind(1)
+    centre = camera_centre(camera.R, camera.t).to(world)
+    ray = joint - centre[:, None]
+    rays = ray / ray.norm(dim=-1, keepdim=True)
+    return rays, ((joint - base) * rays).sum(-1)
+
+
 class _FrameResidual:
     """The residuals of one frame for a fixed model-contour choice (rows by problem index)."""
 
-    def __init__(self, model, scales, person, layout, prediction, sampler, selection):
+    def __init__(self, model, scales, person, layout, prediction, sampler, selection, target=None):
         self.model, self.scales, self.layout = model, scales, layout
+        if target is None:  # the limbs' rays and depths (:func:`_depth_target`)
+            target = _depth_target(model, scales, person.camera, prediction, layout)
         self.camera = person.camera
         self.contours, self.valid = person.contours[0], person.valid[0]
         self.dist = person.distance_maps[0][:, None]
@@ -212,12 +238,11 @@ class _FrameResidual:
         soles = [marks[k] for k in ("l_sole", "r_sole", "l_toe", "r_toe") if k in marks]
         self.floor_weight = layout.floor_weight if soles else 0.0
         extra = torch.tensor(soles, dtype=torch.long, device=ep.model_a.device)
-        limbs = layout.depth_vertices.to(extra.device)
-        limbs = limbs if layout.depth_weight else limbs[:, :0]
+        limbs = _limbs(layout).to(extra.device)
         self.verts = torch.unique(torch.cat([ep.vertices(), extra, limbs.flatten()]))
         self.soles = torch.searchsorted(self.verts, extra)
         self.limbs, self.bases = torch.searchsorted(self.verts, limbs)
-        self._depth_target(prediction, limbs)
+        self.rays, self.depth = target
         where = lambda idx: torch.searchsorted(self.verts, idx)  # noqa: E731
         self.ma, self.mb = where(ep.model_a), where(ep.model_b)
         self.pa, self.pb = where(ep.person_a), where(ep.person_b)
@@ -226,20 +251,6 @@ class _FrameResidual:
         self.n_model = selection.sample_valid.sum(1).clamp_min(1)
         self.n_person = self.valid.sum(1).clamp_min(1)
         self._last = None  # (rows, index, kinematics pass) of the last residual evaluation
-
-    def _depth_target(self, prediction: torch.Tensor, limbs: torch.Tensor) -> None:
-        """Per row, each limb joint's camera ray (B, K, 3) and the prediction's offset of the
-        joint from the one its limb hangs from, along that ray (B, K)."""
-        if not limbs.shape[1]:
-            return
-        t, r, q = PoseLayout.split(prediction)
-        with torch.no_grad():
-            world = self.model(self.scales, q, t, r, vertex_index=limbs.flatten()).vertices
-        joint, base = world.reshape(world.shape[0], 2, -1, 3).unbind(1)
-        centre = camera_centre(self.camera.R, self.camera.t).to(world)
-        ray = joint - centre[:, None]
-        self.rays = ray / ray.norm(dim=-1, keepdim=True)
-        self.depth = ((joint - base) * self.rays).sum(-1)
 
     def _endpoints(self, p: torch.Tensor, index: torch.Tensor) -> dict[str, torch.Tensor]:
         """Each residual entry's own copy of its edge endpoints' pixels (N, n, 2)."""
@@ -333,10 +344,14 @@ class _FrameResidual:
             for (k, g) in zip(ends, grads, strict=True)
         }
 
+        # each residual entry's endpoint rows of d_pix, copied by row from the flattened batch
+        flat = d_pix.reshape(-1, 2, p_count)
+        first = torch.arange(n, device=xr.device)[:, None] * d_pix.shape[1]
+
         def chain(name: str, idx: torch.Tensor) -> torch.Tensor:
-            tangents = torch.gather(d_pix, 1, idx[..., None, None].expand(-1, -1, 2, p_count))
-            prod = local[name][..., None] * tangents  # (N, n, 2, P)
-            return prod[:, :, 0] + prod[:, :, 1]
+            tangents = flat.index_select(0, (idx + first).flatten()).view(*idx.shape, 2, p_count)
+            g = local[name][..., None]
+            return g[:, :, 0] * tangents[:, :, 0] + g[:, :, 1] * tangents[:, :, 1]
 
         j_p = chain("pa", self.pa[index]) + chain("pb", self.pb[index])
         j_m = chain("ma", self.ma[index]) + chain("mb", self.mb[index])
@@ -369,13 +384,6 @@ class _FrameResidual:
             rp, _ = self(pert, index.repeat(p))
         jac = (rp.reshape(p, n, -1) - r0[None]) / h.T[:, :, None]
         return jac.permute(1, 2, 0), r0
-
-    def contour_rms(self, x: torch.Tensor) -> torch.Tensor:
-        """(B,) RMS of e_P in pixels."""
-        with torch.no_grad():
-            r, _ = self(x, torch.arange(x.shape[0], device=x.device))
-        e_p = r[:, : self.contours.shape[1]]
-        return (e_p * e_p).sum(1).sqrt()  # e_P already carries 1 / sqrt(|C_P|)
 
 
 _JACOBIANS = {
@@ -419,14 +427,15 @@ def solve_frame(
         xtol=options.xtol,
     )
     cost = torch.zeros(x.shape[0], dtype=x.dtype)
-    problem = None
+    target = _depth_target(model, scales, camera, prediction, layout)
+    residual = None
     for _ in range(options.rounds):
         with torch.no_grad():
             pix, _ = _pixels(model, scales, camera, x, None)
         sel = select_contour(
             sampler, pix, person.contours[0], person.valid[0], camera.image_size, 1.0
         )
-        problem = _FrameResidual(model, scales, person, layout, prediction, sampler, sel)
+        problem = _FrameResidual(model, scales, person, layout, prediction, sampler, sel, target)
         res = levenberg_marquardt(
             problem,
             x,
@@ -438,6 +447,9 @@ def solve_frame(
             upper=layout.upper,
             indexed=True,
         )
-        x, cost = res.x, res.cost
+        x, cost, residual = res.x, res.cost, res.residual
         iterations += res.n_iter.cpu().long()
-    return FrameResult(x=x, cost=cost, contour_rms=problem.contour_rms(x), iterations=iterations)
+    # the solver's last residual is the one at x: e_P leads it, already over sqrt(|C_P|)
+    e_p = residual[:, : person.contours[0].shape[1]]
+    rms = (e_p * e_p).sum(1).sqrt()
+    return FrameResult(x=x, cost=cost, contour_rms=rms, iterations=iterations)
