@@ -1,12 +1,17 @@
-"""torchfit.io.prefetch: items in order, errors in place, the thread works ahead and stops."""
+"""torchfit.io.prefetch: items in order, errors in place, the thread or the process works ahead
+and stops."""
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import threading
+import time
 
 import pytest
+import torch
 
-from torchfit.io.prefetch import prefetch
+from torchfit.io.prefetch import prefetch, prefetch_process
 
 
 def _prefetch_threads() -> list[threading.Thread]:
@@ -69,3 +74,56 @@ def test_depth_zero_runs_in_the_caller_and_negative_is_an_error():
     assert list(prefetch(iter("abc"), depth=0)) == ["a", "b", "c"]
     with pytest.raises(ValueError, match="depth must be >= 0"):
         list(prefetch(iter("abc"), depth=-1))
+
+
+# ---- in a second process --------------------------------------------------------------------
+
+
+def _squares(n: int):
+    import os
+
+    for i in range(n):
+        yield i * i, os.getpid()
+
+
+def _broken():
+    yield torch.ones(3)
+    raise ValueError("frame 2 is unreadable")
+
+
+def _endless(flag_path: str):
+    n = 0
+    while True:
+        with open(flag_path, "a") as f:
+            f.write(f"{n}\n")
+        yield n
+        n += 1
+
+
+def test_a_process_yields_the_items_in_order_from_another_process():
+    items = list(prefetch_process(_squares, 20, depth=2))
+    assert [v for v, _ in items] == [i * i for i in range(20)]
+    assert {pid for _, pid in items} != {os.getpid()}
+    assert multiprocessing.active_children() == []
+
+
+def test_a_process_hands_tensors_and_errors_back():
+    got = []
+    with pytest.raises(ValueError, match="frame 2 is unreadable"):
+        for item in prefetch_process(_broken):
+            got.append(item)
+    assert len(got) == 1 and torch.equal(got[0], torch.ones(3))
+    assert multiprocessing.active_children() == []
+
+
+def test_closing_early_ends_the_process(tmp_path):
+    flag = tmp_path / "made.txt"
+    items = prefetch_process(_endless, str(flag), depth=2)
+    assert [next(items) for _ in range(3)] == [0, 1, 2]
+    items.close()
+    assert multiprocessing.active_children() == []
+    made = len(flag.read_text().split())
+    time.sleep(0.3)
+    assert len(flag.read_text().split()) == made  # nothing runs any more
+    with pytest.raises(ValueError, match="depth must be >= 1"):
+        next(prefetch_process(_squares, 3, depth=0))

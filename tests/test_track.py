@@ -160,12 +160,12 @@ def test_tracker_recovers_after_a_corrupted_frame(model, camera):
     assert all(s == "ok" for s in status[8:]), status
 
 
-def test_a_video_tracks_like_its_frames(model, camera, tmp_path):
-    """The same frames as PNG files and as a (lossless) video give the same track."""
+def _write_sequence(model, camera, tmp_path, video: bool = False):
+    """A three-frame sequence folder (the model's own silhouettes on a flat background), and
+    the same frames as a lossless video when ``video`` (None if OpenCV cannot write one)."""
     import cv2
 
     from torchfit.io.camera import save_camera
-    from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences
 
     layout = PoseLayout(model, TrackOptions())
     xs = torch.stack(
@@ -180,19 +180,32 @@ def test_a_video_tracks_like_its_frames(model, camera, tmp_path):
     bg = (60 + rng.integers(0, 3, (SIZE[1], SIZE[0], 3))).astype(np.uint8)
     for i in range(5):
         cv2.imwrite(str(folder / "background" / f"bg{i:02d}.png"), bg)
-    video = cv2.VideoWriter(str(tmp_path / "clip.avi"), cv2.VideoWriter_fourcc(*"FFV1"), 25, SIZE)
+    path = tmp_path / "clip.avi"
+    fourcc = cv2.VideoWriter_fourcc(*"FFV1")
+    writer = cv2.VideoWriter(str(path), fourcc, 25, SIZE) if video else None
     for k, m in enumerate(masks):
         frame = bg.copy()
         frame[m] = (200, 150, 90)
         cv2.imwrite(str(folder / "frames" / f"{k:06d}.png"), frame)
-        video.write(frame)
-    video.release()
-    if not (tmp_path / "clip.avi").stat().st_size:
+        if writer is not None:
+            writer.write(frame)
+    if writer is None:
+        return folder, None
+    writer.release()
+    return folder, path if path.stat().st_size else None
+
+
+def test_a_video_tracks_like_its_frames(model, camera, tmp_path):
+    """The same frames as PNG files and as a (lossless) video give the same track."""
+    from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences
+
+    folder, video = _write_sequence(model, camera, tmp_path, video=True)
+    if video is None:
         pytest.skip("this OpenCV build cannot write FFV1 video")
     cfg = TrackConfig(track=TrackOptions(iterations=3, rounds=1))
     scales = torch.ones(model.num_segments, 3, dtype=torch.float64)
     outs = [tmp_path / "png", tmp_path / "video"]
-    seqs = [load_sequence(folder), load_sequence(folder, video=tmp_path / "clip.avi")]
+    seqs = [load_sequence(folder), load_sequence(folder, video=video)]
     assert seqs[1].num_frames == 3
     track_sequences(model, scales, seqs[:1], outs[:1], cfg)
     track_sequences(model, scales, seqs[1:], outs[1:], cfg)
@@ -200,6 +213,24 @@ def test_a_video_tracks_like_its_frames(model, camera, tmp_path):
     b = (outs[1] / "track.csv").read_text().splitlines()
     assert len(a) == len(b) == 4
     assert [r.split(",")[5] for r in a] == [r.split(",")[5] for r in b]  # same contour RMS
+
+
+def test_frames_read_ahead_in_a_thread_or_a_process_track_alike(model, camera, tmp_path):
+    """Reading and segmenting the next frames in a thread, a second process or in line gives
+    byte-identical joints; an unknown choice is an error."""
+    from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences
+
+    folder, _ = _write_sequence(model, camera, tmp_path)
+    cfg = TrackConfig(track=TrackOptions(iterations=3, rounds=1))
+    scales = torch.ones(model.num_segments, 3, dtype=torch.float64)
+    joints = {}
+    for ahead in ("thread", "process", "none"):
+        out = tmp_path / ahead
+        track_sequences(model, scales, [load_sequence(folder)], [out], cfg, ahead=ahead)
+        joints[ahead] = (out / "joints_world.json").read_bytes()
+    assert joints["process"] == joints["thread"] == joints["none"]
+    with pytest.raises(ValueError, match="ahead: expected"):
+        track_sequences(model, scales, [load_sequence(folder)], [tmp_path / "x"], cfg, ahead="gpu")
 
 
 @pytest.mark.parametrize("depth", [0.0, 50.0])
@@ -298,7 +329,7 @@ def test_a_solve_uses_its_own_options_weights(model, camera):
 
 
 def test_track_tool_threads(tmp_path, capsys):
-    """tools/track.py leaves one core to the thread that reads and segments the next frames
+    """tools/track.py leaves one core to the reader that reads and segments the next frames
     (torch takes one thread fewer than the cores, at least 1), and rejects --threads 0 with
     exit code 2."""
     from scripts import load_script

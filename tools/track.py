@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -29,6 +30,12 @@ from tqdm import tqdm
 
 from torchfit.config import load_config
 from torchfit.errors import ConfigError, DataError, OutputError, TorchfitError
+
+
+def _cpu_seconds() -> float:
+    """CPU time of this process and of its finished children (the frame reader's)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,6 +68,14 @@ def main(argv: list[str] | None = None) -> int:
         help="torch CPU threads (default: one fewer than the cores, at least 1: the remaining "
         "core reads and segments the next frames meanwhile)",
     )
+    parser.add_argument(
+        "--ahead",
+        choices=("process", "thread", "none"),
+        default=None,
+        help="where the next frames are read, segmented and turned into contours and distance "
+        "maps while one is tracked (default: a second process where there are two cores or "
+        "more, else none)",
+    )
     args = parser.parse_args(argv)
     if args.threads is not None and args.threads < 1:
         parser.error(f"--threads must be >= 1, got {args.threads}")
@@ -68,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     from torchfit.pipeline.runtime import cpu_count
 
     torch.set_num_threads(args.threads or max(1, cpu_count() - 1))
+    ahead = args.ahead or ("process" if cpu_count() > 1 else "none")
     from torchfit.body.model import BodyModel
     from torchfit.pipeline.tensorboard import TensorBoardCallback
     from torchfit.pipeline.track import (
@@ -105,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     outs = [out] if len(seqs) == 1 else [out / f"{k:02d}_{s.name}" for k, s in enumerate(seqs)]
     try:
         out.mkdir(parents=True, exist_ok=True)
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0, c0 = time.perf_counter(), _cpu_seconds()
         with TensorBoardCallback(out / "tb", "track") as tb:
             summaries = track_sequences(
                 model,
@@ -116,8 +132,9 @@ def main(argv: list[str] | None = None) -> int:
                 tb,
                 progress=lambda it: tqdm(it, desc="frames", total=max(s.num_frames for s in seqs)),
                 overlays=args.overlays,
+                ahead=ahead,
             )
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        wall, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
     except OutputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 3

@@ -209,27 +209,32 @@ def select_contour(
     check_shape("pixels", pixels, ("B", "V", 2))
     b = pixels.shape[0]
     w, h = image_size
-    px = pixels.detach().cpu().double()
-    pts = sampler.all_points(px).numpy()  # (B, N, 2)
+    px = pixels.detach().cpu().double().numpy()
     faces = sampler.faces.numpy()
+    edges, k = sampler.edges.numpy(), sampler.k
+    t = sampler.t.numpy()[None, :, None]
     chosen, masks = [], []
     nearest = torch.zeros(person_contours.shape[:2], dtype=torch.long)
     for i in range(b):
-        mask = render_silhouette(px[i].numpy(), faces, (w, h))
+        mask = render_silhouette(px[i], faces, (w, h))
         masks.append(mask)
         outlines = outer_outlines(mask)
         bpix = (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
-        p = pts[i]
+        # the samples of the candidate edges only (EdgeSampler.all_points, restricted)
+        cand = np.flatnonzero(sampler.silhouette_edges(px[i]))
+        ends = px[i][edges[cand]]  # (n, 2, 2)
+        p = (ends[:, None, 0] * (1 - t) + ends[:, None, 1] * t).reshape(-1, 2)
+        on = (cand[:, None] * k + np.arange(k)).reshape(-1)
         inside = (p[:, 0] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < h - 0.5)
-        candidate = np.repeat(sampler.silhouette_edges(px[i].numpy()), sampler.k)
-        on = np.flatnonzero(candidate & inside)
-        ui = np.clip(np.rint(p[on, 0]), 0, w - 1).astype(np.int64)
-        vi = np.clip(np.rint(p[on, 1]), 0, h - 1).astype(np.int64)
-        on = on[_near_boundary(bpix, ui, vi, (w, h), tolerance)]
+        on, p = on[inside], p[inside]
+        ui = np.clip(np.rint(p[:, 0]), 0, w - 1).astype(np.int64)
+        vi = np.clip(np.rint(p[:, 1]), 0, h - 1).astype(np.int64)
+        near = _near_boundary(bpix, ui, vi, (w, h), tolerance)
+        on, p = on[near], p[near]
         chosen.append(on)
         valid = person_valid[i].cpu().numpy()
         if len(on) and valid.any():
-            _, idx = cKDTree(p[on]).query(person_contours[i].cpu().numpy()[valid])
+            _, idx = cKDTree(p).query(person_contours[i].cpu().numpy()[valid])
             nearest[i, torch.from_numpy(np.flatnonzero(valid))] = torch.from_numpy(idx)
     n = max(1, max(len(c) for c in chosen))
     samples = torch.zeros(b, n, dtype=torch.long)

@@ -41,17 +41,16 @@ from torchfit.camera import (
     stack_cameras,
 )
 from torchfit.errors import DataError
-from torchfit.fit.person import person_data_from_masks
 from torchfit.image import SegmentationOptions, fit_background, segment
 from torchfit.io.bvh import write_bvh
 from torchfit.io.camera import load_camera
 from torchfit.io.export import write_json
 from torchfit.io.files import make_dirs, write_atomic
 from torchfit.io.images import list_images, load_frames, write_image
-from torchfit.io.prefetch import prefetch
+from torchfit.io.prefetch import prefetch, prefetch_process
 from torchfit.io.video import read_video, video_frame_count
 from torchfit.measurements import JOINT_NAMES
-from torchfit.track import PoseLayout, TrackOptions, solve_frame, track
+from torchfit.track import PoseLayout, TrackOptions, frame_data, solve_frame, track
 
 __all__ = [
     "TrackConfig",
@@ -180,7 +179,13 @@ def _masks(seqs: list[Sequence], backgrounds, options: SegmentationOptions):
         yield torch.stack(last)
 
 
-def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
+def _frames(seqs, backgrounds, cameras, config: TrackConfig, dtype):
+    """Per frame, the silhouettes (B, H, W) and the tracker's person data made from them."""
+    for masks in _masks(seqs, backgrounds, config.segmentation):
+        yield masks, frame_data(masks, cameras, config.track, dtype)
+
+
+def _start(model, scales, cameras, mask, layout, options, person=None) -> torch.Tensor:
     """First-frame rows: per sequence, two placements times yaw hypotheses, the best contour
     kept. Standing: the silhouette's lowest pixel on the floor; sized: at the distance where
     the neutral model's height fills the silhouette's height (a person in mid-jump in the
@@ -226,13 +231,8 @@ def _start(model, scales, cameras, mask, layout, options) -> torch.Tensor:
     for j, pz in enumerate(fixed_z):
         x0[j, 2] = -low[j] if pz is None else pz
     # the distance maps once per sequence, shared by its hypotheses
-    person = person_data_from_masks(
-        mask[:, None],
-        cameras,
-        stride=options.contour_stride,
-        dtype=model.dtype,
-        crop_margin_px=options.distance_margin_px,
-    ).subset(torch.arange(b).repeat_interleave(n))
+    person = person if person is not None else frame_data(mask, cameras, options, model.dtype)
+    person = person.subset(torch.arange(b).repeat_interleave(n))
     # held towards the neutral start by the tracker's own temporal weights and priors (the
     # layout's), the root at start_translation; free root and 0.5 px/rad on the joints gave
     # worse starts on 01_01 clips (mean joint error 182, 65, 140 mm against 83, 79, 114 mm)
@@ -269,6 +269,7 @@ def track_sequences(
     tb=None,
     progress=None,
     overlays: bool = False,
+    ahead: str = "thread",
 ) -> list[dict]:
     """Track ``sequences`` together and write each one's outputs to ``outs``.
 
@@ -281,6 +282,10 @@ def track_sequences(
         tb: optional :class:`torchfit.pipeline.tensorboard.TensorBoardCallback`.
         progress: wraps the frame iterator.
         overlays: also write ``overlay/<frame>.png`` (model contour green, person magenta).
+        ahead: where the next frames are read, segmented and turned into contours and
+            distance maps while one is tracked: ``"thread"``, ``"process"`` (a second
+            interpreter: it starts in a few seconds, and then overlaps with the tracking far
+            better than a thread, which shares the interpreter lock) or ``"none"``.
 
     Returns:
         Per sequence a summary (frames, statuses, ms per frame, errors with a truth).
@@ -295,14 +300,21 @@ def track_sequences(
         frames, _ = load_frames(s.background, s.camera.image_size)
         backgrounds.append(fit_background(frames, config.segmentation))
     layout = PoseLayout(model, config.track)
-    # the next frames are read and segmented while this one is tracked
-    masks = prefetch(_masks(sequences, backgrounds, config.segmentation))
-    first = next(masks)
-    start = _start(model, scales, cameras, first, layout, config.track)
+    # the next frames are read, segmented and turned into contours and distance maps while
+    # this one is tracked
+    args = (sequences, backgrounds, cameras, config, model.dtype)
+    if ahead == "process":
+        ahead = prefetch_process(_frames, *args)
+    elif ahead in ("thread", "none"):
+        ahead = prefetch(_frames(*args), depth=2 if ahead == "thread" else 0)
+    else:
+        raise ValueError(f"ahead: expected 'thread', 'process' or 'none', got {ahead!r}")
+    first, first_person = next(ahead)
+    start = _start(model, scales, cameras, first, layout, config.track, first_person)
 
     def frames_again():
-        yield first
-        yield from masks
+        yield first_person
+        yield from (person for _, person in ahead)
 
     records = track(model, scales, cameras, frames_again(), start, config.track, progress)
     summaries = []

@@ -2,6 +2,14 @@
 sequences."""
 
 from torchfit.track.frame import FrameResult, PoseLayout, TrackOptions, solve_frame
-from torchfit.track.tracker import FrameRecord, track
+from torchfit.track.tracker import FrameRecord, frame_data, track
 
-__all__ = ["TrackOptions", "PoseLayout", "FrameResult", "solve_frame", "FrameRecord", "track"]
+__all__ = [
+    "TrackOptions",
+    "PoseLayout",
+    "FrameResult",
+    "solve_frame",
+    "FrameRecord",
+    "frame_data",
+    "track",
+]

@@ -31,10 +31,10 @@ import torch
 from torchfit.body.model import BodyModel
 from torchfit.camera import Camera
 from torchfit.fit.model_contour import EdgeSampler
-from torchfit.fit.person import person_data_from_masks
+from torchfit.fit.person import PersonData, person_data_from_masks
 from torchfit.track.frame import PoseLayout, TrackOptions, solve_frame
 
-__all__ = ["FrameRecord", "track"]
+__all__ = ["FrameRecord", "frame_data", "track"]
 
 
 @dataclass
@@ -56,11 +56,26 @@ def _median(values: list[float]) -> float:
     return s[len(s) // 2]
 
 
+def frame_data(
+    masks: torch.Tensor, cameras: Camera, options: TrackOptions, dtype: torch.dtype
+) -> PersonData:
+    """The person data the tracker fits one frame to: (B, H, W) silhouettes -> contours and
+    distance maps (one silhouette per row). They depend on the images only, so a caller may
+    make them ahead, e.g. in the thread that reads and segments the next frames."""
+    return person_data_from_masks(
+        masks[:, None],
+        cameras,
+        stride=options.contour_stride,
+        dtype=dtype,
+        crop_margin_px=options.distance_margin_px,
+    )
+
+
 def track(
     model: BodyModel,
     scales: torch.Tensor,
     cameras: Camera,
-    masks: Iterable[torch.Tensor],
+    masks: Iterable[torch.Tensor | PersonData],
     x_start: torch.Tensor,
     options: TrackOptions | None = None,
     progress: Callable[[Iterator], Iterator] | None = None,
@@ -72,7 +87,7 @@ def track(
         scales: (B, S, 3) fixed segment scales per sequence.
         cameras: B cameras.
         masks: per frame, (B, H, W) bool silhouettes (a sequence that has ended repeats its
-            last mask; the caller drops those frames).
+            last mask; the caller drops those frames), or their :func:`frame_data`.
         x_start: (B, P) the pose rows of the frame before the first.
         options: tracker options.
         progress: wraps the frame iterator.
@@ -96,12 +111,10 @@ def track(
     recovery = replace(options, iterations=2 * options.iterations)
     for f, mask in enumerate(it):
         t0 = time.perf_counter()
-        person = person_data_from_masks(
-            mask[:, None],
-            cameras,
-            stride=options.contour_stride,
-            dtype=model.dtype,
-            crop_margin_px=options.distance_margin_px,
+        person = (
+            mask
+            if isinstance(mask, PersonData)
+            else frame_data(mask, cameras, options, model.dtype)
         )
         pred = layout.clip(prev + options.velocity_damping * (prev - prev2))
         res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)
