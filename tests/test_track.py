@@ -236,7 +236,7 @@ def test_frames_read_ahead_in_a_thread_or_a_process_track_alike(model, camera, t
 @pytest.mark.parametrize("depth", [0.0, 50.0])
 def test_analytic_frame_jacobian_matches_central_differences(model, camera, depth):
     from torchfit.fit.model_contour import EdgeSampler, select_contour
-    from torchfit.track.frame import _FrameResidual, _pixels
+    from torchfit.track.residual import _FrameResidual, _pixels
 
     opts = TrackOptions(temporal_depth=depth)  # with and without the limbs' depth pull
     layout = PoseLayout(model, opts)
@@ -277,7 +277,7 @@ def test_the_frame_jacobian_reuses_the_residuals_pass_only_at_its_point(model, c
     at any other point it makes its own. Either way it is the Jacobian a fresh problem gives,
     bit for bit."""
     from torchfit.fit.model_contour import EdgeSampler, select_contour
-    from torchfit.track.frame import _FrameResidual, _pixels
+    from torchfit.track.residual import _FrameResidual, _pixels
 
     opts = TrackOptions()
     layout = PoseLayout(model, opts)

@@ -1,0 +1,148 @@
+"""The tracker's options and where the pose lives in a parameter row (:class:`PoseLayout`)."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import torch
+
+from torchfit.body.model import BodyModel
+
+__all__ = ["TrackOptions", "PoseLayout"]
+
+#: limb joint whose depth the ``temporal_depth`` term holds -> the joint its limb hangs from.
+_DEPTH_JOINTS = {
+    f"{s}_{j}": f"{s}_{base}"
+    for s in ("l", "r")
+    for j, base in (("elbow", "shoulder"), ("wrist", "shoulder"), ("knee", "hip"), ("ankle", "hip"))
+}
+
+
+@dataclass(frozen=True)
+class TrackOptions:
+    """Options of the tracker.
+
+    Attributes:
+        iterations: LM iterations per contour choice.
+        rounds: contour choices (each followed by an LM solve) per frame.
+        temporal_translation: temporal weight of the root translation, pixels per metre. The
+            contour is weighed as its RMS, and a silhouette tells the body's distance only
+            through its size, which a lean in depth fakes: 1 m of depth moves the RMS by a few
+            pixels, so a stiff pull (100) held the root where the last frame left it while the
+            person walked or jumped 10-50 cm along the camera ray.
+        start_translation: the first frame's pull of the root towards its placement, pixels
+            per metre (the placement is measured on the silhouette: its lowest pixel on the
+            floor, or its size; with the tracker's weaker pull the floor term drew a start in
+            mid-jump down).
+        temporal_rotation: temporal weight of the root rotation, pixels per radian.
+        temporal_joints: temporal weight of the joint angles, pixels per radian.
+        samples_per_edge: model contour candidates per mesh edge.
+        recover_factor: a frame whose contour RMS exceeds ``recover_factor`` times the
+            sequence's running median (and ``recover_min_px``) is re-initialised from the last
+            good frame.
+        recover_min_px: see ``recover_factor``.
+        confidence_px: contour RMS at which the confidence is 0.5.
+        floor_weight: pull of the lowest sole point towards the floor (z = 0), pixels per
+            metre (a soft contact: someone jumping leaves the floor at that cost).
+        contour_stride: use every n-th person contour pixel in e_P.
+        distance_margin_px: the person's distance map is computed on the box around the
+            silhouettes grown by this many pixels (exact there; beyond it a bound, see
+            :func:`torchfit.fit.person.person_data_from_masks`); None: the whole image.
+        twist_weight: pull of the twists (DOFs named ``*twisting`` and ``*torsion``)
+            towards neutral (0), pixels per radian: a silhouette hardly shows a limb turning
+            about itself, and a twist left free drifts frame after frame (0 turns it off).
+        temporal_depth: temporal weight of each limb joint's depth (elbows, wrists, knees,
+            ankles), pixels per metre: its offset from the joint its limb hangs from (shoulder,
+            hip) along its camera ray (the prediction's), towards the prediction's (from the
+            limb's own joint, not the root: the trunk leaning or turning stays free). A
+            silhouette shows a limb across the ray and hides it along the ray (an arm in front
+            of or behind the body), where the angle pulls alone let it drift from frame to
+            frame; this holds only that direction, so a limb still follows what the
+            silhouette shows (0 turns it off).
+        velocity_damping: the prediction is ``x_{t-1} + velocity_damping (x_{t-1} - x_{t-2})``
+            (1: constant velocity, 0: the last pose).
+        ftol, xtol: the solver's stopping tolerances (:class:`torchfit.solver.LMOptions`):
+            a row stops before ``iterations`` once its relative cost reduction or its
+            relative step falls below them.
+        min_diag: floor of the solver's scaling (:attr:`torchfit.solver.LMOptions.min_diag`).
+        jacobian: ``analytic`` (the pose derivatives in closed form, one model call per
+            Jacobian: the fastest), ``batched`` (forward differences, all the perturbed rows in
+            one model call) or a solver Jacobian (``forward``, ``numeric``).
+    """
+
+    iterations: int = 8
+    rounds: int = 2
+    temporal_translation: float = 20.0
+    start_translation: float = 100.0
+    temporal_rotation: float = 5.0
+    temporal_joints: float = 2.0
+    samples_per_edge: int = 2
+    recover_factor: float = 2.5
+    recover_min_px: float = 4.0
+    confidence_px: float = 6.0
+    floor_weight: float = 30.0
+    min_diag: float = 1e-6
+    contour_stride: int = 3
+    distance_margin_px: int | None = 48
+    jacobian: str = "analytic"
+    ftol: float = 1e-3
+    xtol: float = 1e-3
+    velocity_damping: float = 0.0
+    twist_weight: float = 20.0
+    temporal_depth: float = 15.0
+
+
+class PoseLayout:
+    """Where the pose lives in a parameter row, its bounds and its temporal weights."""
+
+    def __init__(self, model: BodyModel, options: TrackOptions) -> None:
+        q = model.num_dofs
+        kw = {"dtype": model.dtype, "device": model.device}
+        inf = torch.full((6,), float("inf"), **kw)
+        self.num_params = 6 + q
+        self.lower = torch.cat([-inf, model.joint_lower.to(**kw)])
+        self.upper = torch.cat([inf, model.joint_upper.to(**kw)])
+        self._twist = torch.tensor([n.endswith(("twisting", "torsion")) for n in model.dof_names])
+        #: (2, K) per limb joint and the joint its limb hangs from, the vertex of the segment
+        #: starting there nearest to the joint (it moves with the joint)
+        t = model.template
+
+        def near(joint: str) -> int:
+            idx = torch.nonzero(t.vertex_segment == t.joints[joint]).flatten()
+            return int(idx[t.vertices[idx].norm(dim=1).argmin()])
+
+        pairs = [(near(j), near(b)) for j, b in _DEPTH_JOINTS.items() if {j, b} <= set(t.joints)]
+        self.depth_vertices = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2).T.contiguous()
+        self._set_weights(options)
+
+    def _set_weights(self, options: TrackOptions) -> None:
+        kw = {"dtype": self.lower.dtype, "device": self.lower.device}
+        self.floor_weight = options.floor_weight
+        self.depth_weight = options.temporal_depth if self.depth_vertices.shape[1] else 0.0
+        #: (Q,) pull of each joint angle towards neutral, or None
+        self.neutral = (
+            (options.twist_weight * self._twist).to(**kw) if options.twist_weight else None
+        )
+        self.weights = torch.cat(
+            [
+                torch.full((3,), options.temporal_translation, **kw),
+                torch.full((3,), options.temporal_rotation, **kw),
+                torch.full((self.num_params - 6,), options.temporal_joints, **kw),
+            ]
+        )
+
+    def for_options(self, options: TrackOptions) -> PoseLayout:
+        """The same layout with the temporal and floor weights of ``options``."""
+        other = copy.copy(self)
+        other._set_weights(options)
+        return other
+
+    @staticmethod
+    def split(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(translation, rotation, joint angles) of (B, P) rows."""
+        return x[:, :3], x[:, 3:6], x[:, 6:]
+
+    def clip(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` inside the bounds."""
+        return torch.maximum(torch.minimum(x, self.upper), self.lower)
