@@ -9,7 +9,9 @@ tracker's time per frame per sequence is measured for B = 1 and B = ``--batch``,
 ``--repeats`` times (medians quoted), as wall time and as this process's CPU time (the latter
 holds better on a shared machine). The first frame (its start hypotheses) is not timed.
 ``--baseline`` also times the tracker with those options changed (``configs/track.yaml``'s
-``track:`` keys), interleaved with the defaults in the same process.
+``track:`` keys), interleaved with the defaults in the same process. ``--prepared`` hands the
+tracker each frame's contours and distance maps made beforehand (timed separately, per image),
+as ``tools/track.py`` does in its reader process, instead of the silhouettes.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from torchfit.camera import stack_cameras
 from torchfit.image import fit_background, segment
 from torchfit.io.images import load_frames
 from torchfit.pipeline.track import TrackConfig, _start, load_fitted, load_sequence
-from torchfit.track import PoseLayout, track
+from torchfit.track import PoseLayout, frame_data, track
 
 
 def main() -> None:
@@ -39,6 +41,9 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--baseline", default=None, help="KEY=VALUE,... tracker options to compare")
+    p.add_argument(
+        "--prepared", action="store_true", help="frames as contours and distance maps (see above)"
+    )
     args = p.parse_args()
     cfg = TrackConfig()
     variants = {"defaults": cfg.track}
@@ -69,13 +74,23 @@ def main() -> None:
     cam1 = seq.camera.to(dtype=model.dtype)
     x0 = _start(model, sc[None], cam1, masks[0][None], layout, cfg.track)
     sizes = (1, args.batch)
+    prepared, prep_ms = {}, None
+    if args.prepared:
+        t0 = time.perf_counter()
+        for b in sizes:
+            cams = stack_cameras([seq.camera] * b).to(dtype=model.dtype)
+            prepared[b] = [
+                frame_data(m[None].expand(b, -1, -1), cams, cfg.track, model.dtype)
+                for m in masks[1:]
+            ]
+        prep_ms = 1000 * (time.perf_counter() - t0) / (len(masks[1:]) * sum(sizes))
     wall = {(v, b): [] for v in variants for b in sizes}
     cpu = {(v, b): [] for v in variants for b in sizes}
     for _ in range(args.repeats):
         for name, options in variants.items():
             for b in sizes:
                 cams = stack_cameras([seq.camera] * b).to(dtype=model.dtype)
-                frames = (m[None].expand(b, -1, -1) for m in masks[1:])
+                frames = prepared[b] if prepared else (m[None].expand(b, -1, -1) for m in masks[1:])
                 t0, c0 = time.perf_counter(), time.process_time()
                 track(
                     model,
@@ -88,6 +103,8 @@ def main() -> None:
                 wall[name, b].append(1000 * (time.perf_counter() - t0) / (args.frames * b))
                 cpu[name, b].append(1000 * (time.process_time() - c0) / (args.frames * b))
     report = {"segmentation_ms_per_image": round(seg_ms, 1), "threads": torch.get_num_threads()}
+    if prep_ms is not None:
+        report["contours_and_distance_maps_ms_per_image"] = round(prep_ms, 1)
     for name in variants:
         one = statistics.median(wall[name, 1])
         many = statistics.median(wall[name, args.batch])
