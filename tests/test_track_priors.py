@@ -105,6 +105,34 @@ def test_first_frame_in_mid_jump_is_placed_by_its_size(model, camera):
     assert float((y[1, :3] - truth[1, :3]).norm()) > float(err[1]) + 0.02, (y, x)
 
 
+def test_the_start_of_many_sequences_is_each_ones_own(model, camera):
+    """The first frame's hypotheses are solved a few sequences at a time (at most
+    ``_START_ROWS`` rows): five sequences, more than one chunk, start where each starts
+    alone, bit for bit."""
+    from torchfit.pipeline import track as pipeline_track
+
+    poses = [
+        _standing(model, camera, {"l_shoulder_abduct": 0.2 + 0.15 * k, "r_elbow_flexion": 0.1 * k})
+        for k in range(5)
+    ]
+    truth = torch.cat(poses)
+    cams = camera[[0] * 5]
+    t, r, q = PoseLayout.split(truth)
+    with torch.no_grad():
+        pix = project_points(model(_ones(model, 5), q, t, r).vertices, cams)
+    masks = torch.stack(
+        [torch.from_numpy(render_silhouette(p.numpy(), model.faces.numpy(), SIZE) > 0) for p in pix]
+    )
+    opts = TrackOptions(iterations=1)
+    layout = PoseLayout(model, opts)
+    rows = 2 * len(pipeline_track._TURNS)
+    assert 5 * rows > pipeline_track._START_ROWS  # the five need more than one chunk
+    together = pipeline_track._start(model, _ones(model, 5), cams, masks, layout, opts)
+    for i in (0, 4):
+        alone = pipeline_track._start(model, _ones(model, 1), cams[[i]], masks[[i]], layout, opts)
+        assert torch.equal(together[i], alone[0])
+
+
 def test_first_frame_placement_undoes_the_lens_distortion(model, camera):
     """The first frame's floor placement back-projects the silhouette's lowest pixel through
     the lens: the same person seen through a barrel-distorted lens (the feet near the image's
