@@ -29,8 +29,8 @@ from torchfit.body.model import BodyModel
 from torchfit.camera import stack_cameras
 from torchfit.image import fit_background, segment
 from torchfit.io.images import load_frames
-from torchfit.pipeline.track import TrackConfig, _start, load_fitted, load_sequence
-from torchfit.track import PoseLayout, frame_data, track
+from torchfit.pipeline.track import TrackConfig, load_fitted, load_sequence
+from torchfit.track import PoseLayout, frame_data, start_poses, track
 
 
 def main() -> None:
@@ -72,7 +72,7 @@ def main() -> None:
     seg_ms = 1000 * (time.perf_counter() - t0) / len(seq.frames)
     layout = PoseLayout(model, cfg.track)
     cam1 = seq.camera.to(dtype=model.dtype)
-    x0 = _start(model, sc[None], cam1, masks[0][None], layout, cfg.track)
+    x0 = start_poses(model, sc[None], cam1, masks[0][None], layout, cfg.track)
     sizes = (1, args.batch)
     prepared, prep_ms = {}, None
     if args.prepared:

@@ -73,23 +73,28 @@ def test_twist_pull_acts_on_the_twists_alone(model):
     assert PoseLayout(model, TrackOptions(twist_weight=0.0)).neutral is None
 
 
+def _silhouettes(model, cams, x: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) the model's silhouettes in the pose rows ``x`` (B, P), unit scales."""
+    t, r, q = PoseLayout.split(x)
+    with torch.no_grad():
+        pix = project_points(model(_ones(model, x.shape[0]), q, t, r).vertices, cams)
+    faces = model.faces.numpy()
+    masks = [render_silhouette(p.numpy(), faces, SIZE) > 0 for p in pix]
+    return torch.stack([torch.from_numpy(m) for m in masks])
+
+
 def test_first_frame_in_mid_jump_is_placed_by_its_size(model, camera):
     """A person 35 cm above the floor in the first frame: the floor placement alone puts them
     far behind (their lowest pixel on the floor); the sized placement keeps them in the air.
     Someone standing keeps the floor placement."""
-    from torchfit.pipeline.track import _start
+    from torchfit.track import start_poses as _start
 
     standing = _standing(model, camera, {"l_shoulder_abduct": 0.4, "r_shoulder_abduct": 0.4})
     jumping = standing.clone()
     jumping[0, 2] += 0.35
     truth = torch.cat([standing, jumping])
     cams = camera[[0, 0]]
-    t, r, q = PoseLayout.split(truth)
-    with torch.no_grad():
-        pix = project_points(model(_ones(model, 2), q, t, r).vertices, cams)
-    masks = torch.stack(
-        [torch.from_numpy(render_silhouette(p.numpy(), model.faces.numpy(), SIZE) > 0) for p in pix]
-    )
+    masks = _silhouettes(model, cams, truth)
     opts = TrackOptions(iterations=2)
     x = _start(model, _ones(model, 2), cams, masks, PoseLayout(model, opts), opts)
     err = (x[:, :3] - truth[:, :3]).norm(dim=1)
@@ -109,7 +114,7 @@ def test_the_start_of_many_sequences_is_each_ones_own(model, camera):
     """The first frame's hypotheses are solved a few sequences at a time (at most
     ``_START_ROWS`` rows): five sequences, more than one chunk, start where each starts
     alone, bit for bit."""
-    from torchfit.pipeline import track as pipeline_track
+    from torchfit.track import start as st
 
     poses = [
         _standing(model, camera, {"l_shoulder_abduct": 0.2 + 0.15 * k, "r_elbow_flexion": 0.1 * k})
@@ -117,19 +122,14 @@ def test_the_start_of_many_sequences_is_each_ones_own(model, camera):
     ]
     truth = torch.cat(poses)
     cams = camera[[0] * 5]
-    t, r, q = PoseLayout.split(truth)
-    with torch.no_grad():
-        pix = project_points(model(_ones(model, 5), q, t, r).vertices, cams)
-    masks = torch.stack(
-        [torch.from_numpy(render_silhouette(p.numpy(), model.faces.numpy(), SIZE) > 0) for p in pix]
-    )
+    masks = _silhouettes(model, cams, truth)
     opts = TrackOptions(iterations=1)
     layout = PoseLayout(model, opts)
-    rows = 2 * len(pipeline_track._TURNS)
-    assert 5 * rows > pipeline_track._START_ROWS  # the five need more than one chunk
-    together = pipeline_track._start(model, _ones(model, 5), cams, masks, layout, opts)
+    rows = 2 * len(st._TURNS)
+    assert 5 * rows > st._START_ROWS  # the five need more than one chunk
+    together = st.start_poses(model, _ones(model, 5), cams, masks, layout, opts)
     for i in (0, 4):
-        alone = pipeline_track._start(model, _ones(model, 1), cams[[i]], masks[[i]], layout, opts)
+        alone = st.start_poses(model, _ones(model, 1), cams[[i]], masks[[i]], layout, opts)
         assert torch.equal(together[i], alone[0])
 
 
@@ -138,7 +138,7 @@ def test_first_frame_placement_undoes_the_lens_distortion(model, camera):
     the lens: the same person seen through a barrel-distorted lens (the feet near the image's
     bottom edge, where the distortion is largest) gets the start it gets through a pinhole."""
     from torchfit.camera import Camera
-    from torchfit.pipeline.track import _start
+    from torchfit.track import start_poses as _start
 
     starts, lowest = {}, {}
     for k1 in (0.0, -0.25):

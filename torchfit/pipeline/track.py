@@ -9,11 +9,9 @@ set per frame), ``track.csv`` (frame, status, cost, iterations, ms, contour_rms,
 TensorBoard scalars under ``tb/``, and with a truth, ``eval.json`` (mean per-joint position
 error, head_top excluded).
 
-The first frame starts from the neutral pose facing the camera, standing where the
-silhouette's lowest point meets the floor; yaw hypotheses within ±45° of facing the camera
-are solved as extra batch rows and the best contour kept. A silhouette looks the same from
-the front and from the back (left and right swapped), so the person must face the camera,
-roughly, in the first frame; after that the temporal term keeps the side.
+The first frame starts from pose hypotheses solved together, the best contour kept
+(:func:`torchfit.track.start_poses`): the person must face the camera, roughly, in the first
+frame; after that the temporal term keeps the side.
 """
 
 from __future__ import annotations
@@ -21,9 +19,8 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -31,13 +28,9 @@ import torch
 
 from torchfit.body.bvh import model_motion
 from torchfit.body.model import BodyModel
-from torchfit.body.postures import facing_yaw
 from torchfit.camera import (
     Camera,
-    camera_centre,
-    floor_points,
     project_points,
-    ray_directions,
     stack_cameras,
 )
 from torchfit.errors import DataError
@@ -50,7 +43,7 @@ from torchfit.io.images import list_images, load_frames, write_image
 from torchfit.io.prefetch import prefetch, prefetch_process
 from torchfit.io.video import read_video, video_frame_count
 from torchfit.measurements import JOINT_NAMES
-from torchfit.track import PoseLayout, TrackOptions, frame_data, solve_frame, track
+from torchfit.track import PoseLayout, TrackOptions, frame_data, start_poses, track
 
 __all__ = [
     "TrackConfig",
@@ -68,16 +61,6 @@ _LIMBS = {
     "{s}_thigh": ("{s}_hip", "{s}_knee"),
     "{s}_calf": ("{s}_knee", "{s}_ankle"),
 }
-
-
-#: first-frame yaw hypotheses around facing the camera, radians.
-_TURNS = tuple(math.radians(d) for d in (-45.0, -20.0, 0.0, 20.0, 45.0))
-
-#: the first frame's sized placement is kept when its contour RMS is this many times lower
-#: than the floor placement's.
-_OFF_FLOOR = 2.0
-#: the first frame's hypotheses solved together, at most (whole sequences' sets of them)
-_START_ROWS = 40
 
 
 @dataclass
@@ -187,80 +170,6 @@ def _frames(seqs, backgrounds, cameras, config: TrackConfig, dtype):
         yield masks, frame_data(masks, cameras, config.track, dtype)
 
 
-def _start(model, scales, cameras, mask, layout, options, person=None) -> torch.Tensor:
-    """First-frame rows: per sequence, two placements times yaw hypotheses, the best contour
-    kept. Standing: the silhouette's lowest pixel on the floor; sized: at the distance where
-    the neutral model's height fills the silhouette's height (a person in mid-jump in the
-    first frame is not on the floor, and the floor placement puts them far behind)."""
-    b = scales.shape[0]
-    dt = model.dtype
-    centre = camera_centre(cameras.R, cameras.t).to(dt)
-    yaw0 = facing_yaw(centre)
-    with torch.no_grad():
-        z = model(scales, **{k: v for k, v in model.zeros(b).items() if k != "scales"})
-        z = z.vertices[..., 2]
-    rows, fixed_z = [], []
-    for i in range(b):
-        ys, xs = torch.nonzero(mask[i], as_tuple=True)
-        cam = cameras[[i]]
-        k, c = cam.K[0].to(dt), centre[i]
-        u = float(xs.float().mean())
-        top, bottom = float(ys.min()), float(ys.max())
-        pixels = torch.tensor([[[u, bottom], [u, 0.5 * (top + bottom)]]], dtype=dt)
-        # standing: the floor point under the silhouette's lowest pixel (the camera's own
-        # spot where that pixel sees no floor)
-        ground = floor_points(pixels[:, :1], cam)[0, 0]
-        ground = torch.where(torch.isnan(ground), c, ground)
-        # sized: the body's mid-height on the ray through the silhouette's mid-height
-        height = float(z[i].max() - z[i].min())
-        depth = float(k[1, 1]) * height / max(bottom - top, 1.0)
-        sized = c + depth * ray_directions(pixels[:, 1:], cam)[0, 0]
-        sized[2] -= 0.5 * float(z[i].max() + z[i].min())
-        for place, pz in ((ground, None), (sized, float(sized[2]))):
-            for turn in _TURNS:
-                x = torch.zeros(layout.num_params, dtype=dt)
-                x[:2] = place[:2]
-                x[5] = yaw0[i] + turn
-                rows.append(x)
-                fixed_z.append(pz)
-    x0 = torch.stack(rows)
-    n = 2 * len(_TURNS)
-    sc = scales.repeat_interleave(n, 0)
-    # the root height: standing, the model's lowest point on the floor
-    with torch.no_grad():
-        t, r, q = PoseLayout.split(x0)
-        low = model(sc, q, t, r).vertices[..., 2].min(1).values
-    for j, pz in enumerate(fixed_z):
-        x0[j, 2] = -low[j] if pz is None else pz
-    # the distance maps once per sequence, shared by its hypotheses
-    person = person if person is not None else frame_data(mask, cameras, options, model.dtype)
-    person = person.subset(torch.arange(b).repeat_interleave(n))
-    # held towards the neutral start by the tracker's own temporal weights and priors (the
-    # layout's), the root at start_translation; free root and 0.5 px/rad on the joints gave
-    # worse starts on 01_01 clips (mean joint error 182, 65, 140 mm against 83, 79, 114 mm)
-    opts = replace(
-        options,
-        iterations=3 * options.iterations,
-        rounds=3,
-        temporal_translation=options.start_translation,
-    )
-    # a few sequences' hypotheses at a time: a row's solve does not depend on the others, and
-    # past a few dozen rows the Jacobians outgrow the caches (16 sequences at once took 1.3 s
-    # a sequence, 4 at a time 0.9 s)
-    xs, rms = [], []
-    for rows in torch.arange(b * n).split(_START_ROWS // n * n or n):
-        res = solve_frame(model, sc[rows], person.subset(rows), layout, x0[rows], x0[rows], opts)
-        xs.append(res.x)
-        rms.append(res.contour_rms)
-    x, rms = torch.cat(xs), torch.cat(rms).reshape(b, 2, n // 2)
-    # the floor placement unless the sized one explains the silhouette far better (someone
-    # standing fits both, and their contours do not tell a lean or a depth apart)
-    stand, sized = rms.min(2).values.unbind(1)
-    use = (sized * _OFF_FLOOR < stand).long()
-    best = use * (n // 2) + rms[torch.arange(b), use].argmin(1)
-    return x.reshape(b, n, -1)[torch.arange(b), best]
-
-
 def _joints(model: BodyModel, scales: torch.Tensor, x: torch.Tensor) -> dict[str, np.ndarray]:
     t, r, q = PoseLayout.split(x)
     with torch.no_grad():
@@ -319,7 +228,7 @@ def track_sequences(
     else:
         raise ValueError(f"ahead: expected 'thread', 'process' or 'none', got {ahead!r}")
     first, first_person = next(ahead)
-    start = _start(model, scales, cameras, first, layout, config.track, first_person)
+    start = start_poses(model, scales, cameras, first, layout, config.track, first_person)
 
     def frames_again():
         yield first_person

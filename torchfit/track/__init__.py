@@ -2,6 +2,7 @@
 sequences."""
 
 from torchfit.track.frame import FrameResult, PoseLayout, TrackOptions, solve_frame
+from torchfit.track.start import start_poses
 from torchfit.track.tracker import FrameRecord, frame_data, track
 
 __all__ = [
@@ -12,4 +13,5 @@ __all__ = [
     "FrameRecord",
     "frame_data",
     "track",
+    "start_poses",
 ]
