@@ -1,5 +1,6 @@
-"""person_data_from_masks(crop_margin_px=...): the distance maps on the silhouettes' box are
-those of the whole image inside the box and keep growing outside it."""
+"""person_data_from_masks(crop_margin_px=...): each distance map, on its own silhouette's box,
+is that of the whole image inside the box and keeps growing outside it; a row's map does not
+depend on the other rows."""
 
 import pytest
 import torch
@@ -24,16 +25,28 @@ def test_cropped_maps_equal_the_whole_image_inside_the_box(method):
     margin = 8
     crop = person_data_from_masks(masks, camera, method=method, crop_margin_px=margin)
     cropped = crop.distance_maps[0]
-    y0, y1, x0, x1 = 30 - margin, 99 + margin, 40 - margin, 109 + margin  # both rows' box
-    torch.testing.assert_close(
-        cropped[:, y0 : y1 + 1, x0 : x1 + 1], whole[:, y0 : y1 + 1, x0 : x1 + 1]
-    )
-    outside = torch.ones(120, 160, dtype=torch.bool)
-    outside[y0 : y1 + 1, x0 : x1 + 1] = False
-    assert (cropped[:, outside] - whole[:, outside]).abs().max() > 0  # it is not the same map
-    # away from the box the bound keeps growing: the corner is the farthest pixel
-    assert (cropped[:, 0, 0] > cropped[:, y0, x0]).all()
-    assert (cropped[:, 0, 0] >= 0.8 * whole[:, 0, 0]).all()
+    boxes = [(30, 89, 40, 99), (50, 99, 70, 109)]  # each row's silhouette
+    for i, (y0, y1, x0, x1) in enumerate(boxes):
+        y0, y1, x0, x1 = y0 - margin, y1 + margin, x0 - margin, x1 + margin
+        box = (slice(y0, y1 + 1), slice(x0, x1 + 1))
+        torch.testing.assert_close(cropped[i][box], whole[i][box])
+        outside = torch.ones(120, 160, dtype=torch.bool)
+        outside[box] = False
+        assert (cropped[i, outside] - whole[i, outside]).abs().max() > 0  # not the same map
+        # away from the box the bound keeps growing: the corner is the farthest pixel
+        assert cropped[i, 0, 0] > cropped[i, y0, x0]
+        assert cropped[i, 0, 0] >= 0.8 * whole[i, 0, 0]
+
+
+def test_a_rows_cropped_map_does_not_depend_on_the_others():
+    """The same silhouette alone, beside another one far away, and twice: the same map."""
+    masks = _blobs()
+    camera = nominal_view(image_size=(160, 120))
+    alone = person_data_from_masks(masks[:1], camera, crop_margin_px=8).distance_maps[0]
+    for others in (masks, masks[[0, 0, 1]]):
+        cams = camera[[0] * others.shape[0]]
+        got = person_data_from_masks(others, cams, crop_margin_px=8).distance_maps[0]
+        assert torch.equal(got[0], alone[0])
 
 
 def test_an_empty_frame_gives_the_whole_image_map():

@@ -100,8 +100,9 @@ def person_data_from_masks(
             like its own shadow then neither pulls the model's feet up nor pushes the model
             back (the floor contact would turn that into a taller body).
         margin_px: see ``uncertain``.
-        crop_margin_px: compute each distance map on the box around all rows' silhouettes,
-            grown by this many pixels, instead of the whole image (None: the whole image).
+        crop_margin_px: compute each row's distance map on the box around its own
+            silhouette, grown by this many pixels, instead of the whole image (None: the
+            whole image); a row's map does not depend on the other rows.
             Inside the box the map is exact (every contour pixel is in it, and the distance
             between two pixels of a box does not leave it); outside, a pixel takes the box
             edge's value plus its Euclidean distance to the box, a bound that keeps growing
@@ -153,21 +154,33 @@ def _cropped_distance_map(
     masks: torch.Tensor, seeds: torch.Tensor, method: str, margin: int
 ) -> torch.Tensor:
     """(B, H, W) distance maps to the (B, 1, H, W) ``seeds`` (the outlines of the silhouettes
-    ``masks``) computed on the silhouettes' common box grown by ``margin`` (see
-    :func:`person_data_from_masks`, ``crop_margin_px``)."""
+    ``masks``), each exact on its own silhouette's box grown by ``margin`` and bounded outside
+    it (see :func:`person_data_from_masks`, ``crop_margin_px``).
+
+    The transform runs once on the rows' common box, where every map is exact; then each row
+    outside its own box takes its own box edge's value plus the distance to it, so a row's map
+    is the one it would get alone."""
     b, h, w = masks.shape
-    rows = masks.any(0).any(1).nonzero().flatten()
-    cols = masks.any(0).any(0).nonzero().flatten()
-    if rows.numel() == 0:  # no silhouette at all: the whole image, as without a crop
-        return distance_map(seeds, method)[:, 0]
-    y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin, h - 1)
-    x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin, w - 1)
-    crop = distance_map(seeds[..., y0 : y1 + 1, x0 : x1 + 1], method)
-    # outside the box: the nearest box pixel's value plus the distance to it
-    pad = (x0, w - 1 - x1, y0, h - 1 - y1)
-    edge = torch.nn.functional.pad(crop, pad, mode="replicate")[:, 0]
-    v = torch.arange(h, device=masks.device, dtype=edge.dtype)
-    u = torch.arange(w, device=masks.device, dtype=edge.dtype)
-    dv = (y0 - v).clamp_min(0) + (v - y1).clamp_min(0)
-    du = (x0 - u).clamp_min(0) + (u - x1).clamp_min(0)
-    return edge + (dv[:, None] ** 2 + du[None, :] ** 2).sqrt()
+    boxes = []
+    for i in range(b):
+        rows = masks[i].any(1).nonzero().flatten()
+        cols = masks[i].any(0).nonzero().flatten()
+        if rows.numel():
+            y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin, h - 1)
+            x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin, w - 1)
+            boxes.append((y0, y1, x0, x1))
+        else:  # no silhouette: the whole image, as without a crop
+            boxes.append((0, h - 1, 0, w - 1))
+    y0, y1 = min(bx[0] for bx in boxes), max(bx[1] for bx in boxes)
+    x0, x1 = min(bx[2] for bx in boxes), max(bx[3] for bx in boxes)
+    crop = distance_map(seeds[..., y0 : y1 + 1, x0 : x1 + 1], method)[:, 0]
+    v = torch.arange(h, device=masks.device)
+    u = torch.arange(w, device=masks.device)
+    out = crop.new_empty(b, h, w)
+    for i, (r0, r1, c0, c1) in enumerate(boxes):
+        # the nearest pixel of the row's own box, and the distance to it
+        vc, uc = v.clamp(r0, r1), u.clamp(c0, c1)
+        dv, du = (v - vc).to(crop.dtype), (u - uc).to(crop.dtype)
+        edge = crop[i].index_select(0, vc - y0).index_select(1, uc - x0)
+        out[i] = edge + (dv[:, None] ** 2 + du[None, :] ** 2).sqrt()
+    return out
