@@ -91,6 +91,17 @@ def _broken():
     raise ValueError("frame 2 is unreadable")
 
 
+class _Unpicklable(Exception):
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.handle = lambda: None  # a lambda does not pickle
+
+
+def _broken_badly():
+    yield 1
+    raise _Unpicklable("the camera went away")
+
+
 def _endless(flag_path: str):
     n = 0
     while True:
@@ -113,6 +124,15 @@ def test_a_process_hands_tensors_and_errors_back():
         for item in prefetch_process(_broken):
             got.append(item)
     assert len(got) == 1 and torch.equal(got[0], torch.ones(3))
+    assert multiprocessing.active_children() == []
+
+
+def test_an_error_that_does_not_pickle_still_says_what_happened():
+    got = []
+    with pytest.raises(RuntimeError, match="_Unpicklable: the camera went away"):
+        for item in prefetch_process(_broken_badly):
+            got.append(item)
+    assert got == [1]
     assert multiprocessing.active_children() == []
 
 

@@ -107,7 +107,11 @@ def _serve(source, args, ready, threads: int, parent: int) -> None:
             if not put(("item", pickle.dumps(item, pickle.HIGHEST_PROTOCOL))):
                 return
     except BaseException as error:  # handed to the consumer, raised there
-        put(("error", error))
+        try:
+            message = pickle.dumps(error, pickle.HIGHEST_PROTOCOL)
+        except Exception:  # an error that does not pickle: its type and message
+            message = pickle.dumps(RuntimeError(f"{type(error).__name__}: {error}"))
+        put(("error", message))
         return
     put(("end", None))
 
@@ -152,7 +156,7 @@ def prefetch_process(
             if kind == "end":
                 return
             if kind == "error":
-                raise item
+                raise pickle.loads(item)
             yield pickle.loads(item)
     finally:
         proc.terminate()

@@ -61,7 +61,7 @@ def frame_data(
 ) -> PersonData:
     """The person data the tracker fits one frame to: (B, H, W) silhouettes -> contours and
     distance maps (one silhouette per row). They depend on the images only, so a caller may
-    make them ahead, e.g. in the thread that reads and segments the next frames."""
+    make them ahead, e.g. where the next frames are read and segmented."""
     return person_data_from_masks(
         masks[:, None],
         cameras,
