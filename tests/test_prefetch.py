@@ -147,3 +147,48 @@ def test_closing_early_ends_the_process(tmp_path):
     assert len(flag.read_text().split()) == made  # nothing runs any more
     with pytest.raises(ValueError, match="depth must be >= 1"):
         next(prefetch_process(_squares, 3, depth=0))
+
+
+def test_the_process_exits_when_its_consumer_is_killed(tmp_path):
+    """A consumer killed outright (no chance to close the generator) leaves no worker behind:
+    the worker, blocked on a full queue with items larger than the pipe holds, sees its
+    parent gone and exits without waiting to hand them over."""
+    import signal
+    import subprocess
+    import sys
+
+    pid_file = tmp_path / "worker.pid"
+    script = f"""
+import os, sys, time
+sys.path.insert(0, {str(os.getcwd())!r})
+from torchfit.io.prefetch import prefetch_process
+
+def endless(path):
+    with open(path, "w") as f:
+        f.write(str(os.getpid()))
+    while True:
+        yield bytes(1 << 20)  # more than the pipe holds: the worker's writer blocks
+
+items = prefetch_process(endless, {str(pid_file)!r}, depth=1)
+next(items)
+print("ready", flush=True)
+time.sleep(60)
+"""
+    consumer = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        assert consumer.stdout.readline().strip() == "ready"
+        worker = int(pid_file.read_text())
+        os.kill(consumer.pid, signal.SIGKILL)
+        consumer.wait(timeout=10)
+        deadline = time.time() + 10
+        while time.time() < deadline:
+            try:
+                os.kill(worker, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            os.kill(worker, signal.SIGKILL)
+            pytest.fail("the worker outlived its killed consumer by 10 s")
+    finally:
+        consumer.kill()

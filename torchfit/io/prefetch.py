@@ -97,7 +97,8 @@ def _serve(source, args, ready, threads: int, parent: int) -> None:
                 ready.put(message, timeout=_POLL_S)
                 return True
             except queue.Full:
-                if os.getppid() != parent:  # the consumer is gone (killed)
+                if os.getppid() != parent:  # the consumer is gone (killed): exit without
+                    ready.cancel_join_thread()  # flushing what nobody will read
                     return False
 
     try:
