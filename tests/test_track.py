@@ -348,3 +348,29 @@ def test_track_tool_threads(tmp_path, capsys):
         assert torch.get_num_threads() == max(1, cpu_count() - 1)
     finally:
         torch.set_num_threads(before)
+
+
+def test_track_tool_names_an_unreadable_frame_with_exit_code_4(model, camera, tmp_path, capsys):
+    """A frame that cannot be read, found while tracking (in the reader process), stops the
+    run with the file named and exit code 4, as an unreadable sequence does."""
+    import json
+
+    from scripts import load_script
+
+    folder, _ = _write_sequence(model, camera, tmp_path)
+    (folder / "frames" / "000001.png").write_bytes(b"not a png")
+    fitted = tmp_path / "fit"
+    fitted.mkdir()
+    scales = {s: [1.0, 1.0, 1.0] for s in model.template.segments}
+    (fitted / "params.json").write_text(
+        json.dumps({"template": "mpeg4_full", "segment_scales": scales})
+    )
+    tool = load_script("tools/track.py")
+    before = torch.get_num_threads()
+    try:
+        argv = ["--config", "configs/track.yaml", "--model", str(fitted), "--sequence"]
+        code = tool.main([*argv, str(folder), "--out", str(tmp_path / "out"), "--threads", "1"])
+    finally:
+        torch.set_num_threads(before)
+    assert code == 4
+    assert "000001.png" in capsys.readouterr().err

@@ -12,7 +12,8 @@ Several sequences are tracked together, one frame per batch row. Writes per sequ
 ``eval.json``; TensorBoard scalars in ``OUT_DIR/tb``.
 
 Exit codes: 0 ok, 1 a sequence lost frames (status ``uncertain``), 2 bad arguments or config,
-3 output not writable, 4 model or sequence missing.
+3 output not writable, 4 model or sequence missing or unreadable (also a frame found unreadable
+while tracking).
 """
 
 from __future__ import annotations
@@ -141,6 +142,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"error: cannot write {out}: {exc}", file=sys.stderr)
         return 3
+    except DataError as exc:  # a frame or background image that cannot be read, mid-run
+        print(f"error: {exc}", file=sys.stderr)
+        return 4
     except TorchfitError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
