@@ -10,6 +10,7 @@ right swapped); after the first frame the temporal term keeps the side.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import replace
 
@@ -24,6 +25,8 @@ from torchfit.track.options import PoseLayout, TrackOptions
 from torchfit.track.tracker import frame_data
 
 __all__ = ["start_poses"]
+
+log = logging.getLogger(__name__)
 
 #: first-frame yaw hypotheses around facing the camera, radians.
 _TURNS = tuple(math.radians(d) for d in (-45.0, -20.0, 0.0, 20.0, 45.0))
@@ -117,6 +120,7 @@ def start_poses(
     # past a few dozen rows the Jacobians outgrow the caches (16 sequences at once took 1.3 s
     # a sequence, 4 at a time 0.9 s)
     xs, rms = [], []
+    log.info("first frame: %d pose hypotheses for %d sequence(s)", b * n, b)
     for rows in torch.arange(b * n).split(_START_ROWS // n * n or n):
         res = solve_frame(model, sc[rows], person.subset(rows), layout, x0[rows], x0[rows], opts)
         xs.append(res.x)
