@@ -3,6 +3,8 @@ silhouettes: the twist pull keeps an invisible twist near neutral, the limbs' de
 holds arms the silhouette hides, and a first frame in mid-jump is placed by its size rather
 than on the floor."""
 
+import math
+
 import pytest
 import torch
 
@@ -131,6 +133,21 @@ def test_the_start_of_many_sequences_is_each_ones_own(model, camera):
     for i in (0, 4):
         alone = st.start_poses(model, _ones(model, 1), cams[[i]], masks[[i]], layout, opts)
         assert torch.equal(together[i], alone[0])
+
+
+def test_a_first_frame_in_the_t_pose_starts_with_raised_arms(model, camera):
+    """From hanging arms the start's solve does not lift them to a T-pose; a start that
+    explains its silhouette that badly is tried again from the T-pose."""
+    from torchfit.track import start as st
+
+    raised = {"l_shoulder_abduct": math.radians(88.0), "r_shoulder_abduct": math.radians(92.0)}
+    truth = _standing(model, camera, raised)
+    masks = _silhouettes(model, camera[[0]], truth)
+    opts = TrackOptions()
+    x = st.start_poses(model, _ones(model, 1), camera[[0]], masks, PoseLayout(model, opts), opts)
+    for name, angle in raised.items():
+        k = 6 + model.dof_index(name)
+        assert abs(float(x[0, k]) - angle) < math.radians(15.0), (name, float(x[0, k]))
 
 
 def test_first_frame_placement_undoes_the_lens_distortion(model, camera):

@@ -17,7 +17,7 @@ from dataclasses import replace
 import torch
 
 from torchfit.body.model import BodyModel
-from torchfit.body.postures import facing_yaw
+from torchfit.body.postures import facing_yaw, nominal_joint_angles
 from torchfit.camera import Camera, camera_centre, floor_points, ray_directions
 from torchfit.fit.person import PersonData
 from torchfit.track.frame import solve_frame
@@ -34,6 +34,9 @@ _TURNS = tuple(math.radians(d) for d in (-45.0, -20.0, 0.0, 20.0, 45.0))
 #: the first frame's sized placement is kept when its contour RMS is this many times lower
 #: than the floor placement's.
 _OFF_FLOOR = 2.0
+#: a start whose contour RMS exceeds this many ``confidence_px`` (confidence under 0.1) is
+#: tried again from the T-pose
+_LOST = 3.0
 #: the first frame's hypotheses solved together, at most (whole sequences' sets of them)
 _START_ROWS = 40
 
@@ -48,9 +51,10 @@ def start_poses(
     person: PersonData | None = None,
 ) -> torch.Tensor:
     """First-frame rows: per sequence, two placements times yaw hypotheses, the best contour
-    kept. Standing: the silhouette's lowest pixel on the floor; sized: at the distance where
-    the neutral model's height fills the silhouette's height (a person in mid-jump in the
-    first frame is not on the floor, and the floor placement puts them far behind).
+    kept (tried again from the T-pose where that contour is far off). Standing: the
+    silhouette's lowest pixel on the floor; sized: at the distance where the neutral model's
+    height fills the silhouette's height (a person in mid-jump in the first frame is not on the
+    floor, and the floor placement puts them far behind).
 
     Args:
         model: the body model.
@@ -64,6 +68,26 @@ def start_poses(
     Returns:
         (B, P) the first frames' pose rows.
     """
+    dt = model.dtype
+    person = person if person is not None else frame_data(mask, cameras, options, dt)
+    hanging = torch.zeros(model.num_dofs, dtype=dt)
+    x, rms = _best_start(model, scales, cameras, mask, layout, options, person, hanging)
+    # a start that hardly explains its silhouette (confidence under 0.1) is tried again with
+    # the arms raised sideways: from hanging arms the solve does not lift them, and a
+    # calibration T-pose starts many captures
+    lost = (rms > _LOST * options.confidence_px).nonzero().flatten()
+    if lost.numel():
+        log.info("first frame: %d sequence(s) tried again from the T-pose", lost.numel())
+        raised = nominal_joint_angles(model.dof_names, 4, dt)
+        sub = (scales[lost], cameras[lost], mask[lost], layout, options, person.subset(lost))
+        y, rms_raised = _best_start(model, *sub, raised)
+        better = rms_raised < rms[lost]
+        x[lost[better]] = y[better]
+    return x
+
+
+def _best_start(model, scales, cameras, mask, layout, options, person, arms):
+    """The best of one arm pose's hypotheses per sequence: (B, P) rows and (B,) contour RMS."""
     b = scales.shape[0]
     dt = model.dtype
     centre = camera_centre(cameras.R, cameras.t).to(dt)
@@ -93,6 +117,7 @@ def start_poses(
                 x = torch.zeros(layout.num_params, dtype=dt)
                 x[:2] = place[:2]
                 x[5] = yaw0[i] + turn
+                x[6:] = arms
                 rows.append(x)
                 fixed_z.append(pz)
     x0 = torch.stack(rows)
@@ -105,7 +130,6 @@ def start_poses(
     for j, pz in enumerate(fixed_z):
         x0[j, 2] = -low[j] if pz is None else pz
     # the distance maps once per sequence, shared by its hypotheses
-    person = person if person is not None else frame_data(mask, cameras, options, model.dtype)
     person = person.subset(torch.arange(b).repeat_interleave(n))
     # held towards the neutral start by the tracker's own temporal weights and priors (the
     # layout's), the root at start_translation; free root and 0.5 px/rad on the joints gave
@@ -131,4 +155,5 @@ def start_poses(
     stand, sized = rms.min(2).values.unbind(1)
     use = (sized * _OFF_FLOOR < stand).long()
     best = use * (n // 2) + rms[torch.arange(b), use].argmin(1)
-    return x.reshape(b, n, -1)[torch.arange(b), best]
+    at = torch.arange(b)
+    return x.reshape(b, n, -1)[at, best], rms.reshape(b, n)[at, best]
