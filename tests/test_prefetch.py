@@ -118,22 +118,24 @@ def test_a_process_yields_the_items_in_order_from_another_process():
     assert multiprocessing.active_children() == []
 
 
-def test_a_process_hands_tensors_and_errors_back():
+def _items_before(source, error: type, match: str) -> list:
+    """The items a process yields before ``source`` raises (which must come out as ``error``);
+    no worker is left."""
     got = []
-    with pytest.raises(ValueError, match="frame 2 is unreadable"):
-        for item in prefetch_process(_broken):
+    with pytest.raises(error, match=match):
+        for item in prefetch_process(source):
             got.append(item)
-    assert len(got) == 1 and torch.equal(got[0], torch.ones(3))
     assert multiprocessing.active_children() == []
+    return got
+
+
+def test_a_process_hands_tensors_and_errors_back():
+    got = _items_before(_broken, ValueError, "frame 2 is unreadable")
+    assert len(got) == 1 and torch.equal(got[0], torch.ones(3))
 
 
 def test_an_error_that_does_not_pickle_still_says_what_happened():
-    got = []
-    with pytest.raises(RuntimeError, match="_Unpicklable: the camera went away"):
-        for item in prefetch_process(_broken_badly):
-            got.append(item)
-    assert got == [1]
-    assert multiprocessing.active_children() == []
+    assert _items_before(_broken_badly, RuntimeError, "_Unpicklable: the camera went away") == [1]
 
 
 def test_closing_early_ends_the_process(tmp_path):
