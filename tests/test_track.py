@@ -195,6 +195,25 @@ def _write_sequence(model, camera, tmp_path, video: bool = False):
     return folder, path if path.stat().st_size else None
 
 
+def test_a_first_frame_far_off_is_uncertain(model, camera):
+    """With no good frame before it, a frame is judged on its own: a first silhouette the model
+    cannot explain (the person shifted 60 px from where the start puts them, as a start gone
+    wrong) is ``uncertain``, not ``ok``; one it explains is ``ok``."""
+    from torchfit.track.options import LOST_CONFIDENCE
+
+    opts = TrackOptions(iterations=1, rounds=1)
+    layout = PoseLayout(model, opts)
+    x = _pose(model, layout, camera, {"l_shoulder_abduct": 0.3, "r_shoulder_abduct": 0.3})[None]
+    mask = _masks(model, camera, x)  # (1, H, W)
+    scales = torch.ones(1, model.num_segments, 3, dtype=torch.float64)
+    good = track(model, scales, camera, [mask], x, opts)[0][0]
+    assert good.status == "ok" and good.contour_rms < LOST_CONFIDENCE * opts.confidence_px
+    off = torch.roll(mask, 60, dims=2)
+    lost = track(model, scales, camera, [off], x, opts)[0][0]
+    assert lost.contour_rms > LOST_CONFIDENCE * opts.confidence_px, lost.contour_rms
+    assert lost.status == "uncertain", lost
+
+
 def test_a_video_tracks_like_its_frames(model, camera, tmp_path):
     """The same frames as PNG files and as a (lossless) video give the same track."""
     from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences

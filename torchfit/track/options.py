@@ -9,7 +9,12 @@ import torch
 
 from torchfit.body.model import BodyModel
 
-__all__ = ["TrackOptions", "PoseLayout"]
+__all__ = ["TrackOptions", "PoseLayout", "LOST_CONFIDENCE"]
+
+#: a frame with no good frame before it is lost when its contour RMS exceeds this many
+#: ``confidence_px`` (its confidence is then under 0.1): the start is tried again from the
+#: T-pose, and a first frame still that far off is ``uncertain``
+LOST_CONFIDENCE = 3.0
 
 #: limb joint whose depth the ``temporal_depth`` term holds -> the joint its limb hangs from.
 _DEPTH_JOINTS = {

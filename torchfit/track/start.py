@@ -21,7 +21,7 @@ from torchfit.body.postures import facing_yaw, nominal_joint_angles
 from torchfit.camera import Camera, camera_centre, floor_points, ray_directions
 from torchfit.fit.person import PersonData
 from torchfit.track.frame import solve_frame
-from torchfit.track.options import PoseLayout, TrackOptions
+from torchfit.track.options import LOST_CONFIDENCE, PoseLayout, TrackOptions
 from torchfit.track.tracker import frame_data
 
 __all__ = ["start_poses"]
@@ -34,9 +34,6 @@ _TURNS = tuple(math.radians(d) for d in (-45.0, -20.0, 0.0, 20.0, 45.0))
 #: the first frame's sized placement is kept when its contour RMS is this many times lower
 #: than the floor placement's.
 _OFF_FLOOR = 2.0
-#: a start whose contour RMS exceeds this many ``confidence_px`` (confidence under 0.1) is
-#: tried again from the T-pose
-_LOST = 3.0
 #: the first frame's hypotheses solved together, at most (whole sequences' sets of them)
 _START_ROWS = 40
 
@@ -75,7 +72,7 @@ def start_poses(
     # a start that hardly explains its silhouette (confidence under 0.1) is tried again with
     # the arms raised sideways: from hanging arms the solve does not lift them, and a
     # calibration T-pose starts many captures
-    lost = (rms > _LOST * options.confidence_px).nonzero().flatten()
+    lost = (rms > LOST_CONFIDENCE * options.confidence_px).nonzero().flatten()
     if lost.numel():
         log.info("first frame: %d sequence(s) tried again from the T-pose", lost.numel())
         raised = nominal_joint_angles(model.dof_names, 4, dt)

@@ -9,9 +9,10 @@ extrapolates the last velocity, 0 holds the last pose; a silhouette leaves some 
 unseen, and a velocity extrapolated along them makes the pose drift).
 
 Recovery: a row whose contour RMS exceeds ``recover_factor`` times its sequence's running
-median of good frames (and at least ``recover_min_px``) is solved again from its last good
-frame, pulled towards that frame (not the extrapolation) and with twice the iterations; the
-frame's status is ``recovered`` when that brings it back
+median of good frames (and at least ``recover_min_px``; before any good frame,
+:data:`torchfit.track.options.LOST_CONFIDENCE` times ``confidence_px``) is solved again from
+its last good frame (or its start), pulled towards that frame (not the extrapolation) and
+with twice the iterations; the frame's status is ``recovered`` when that brings it back
 under the threshold, ``uncertain`` otherwise; after either the velocity is reset (the next
 frame starts from this pose, not an extrapolation of a bad one), so one bad frame does not
 throw the next ones. ``confidence = 1 / (1 + (rms / confidence_px)²)``: a single
@@ -33,6 +34,7 @@ from torchfit.camera import Camera
 from torchfit.fit.model_contour import EdgeSampler
 from torchfit.fit.person import PersonData, person_data_from_masks
 from torchfit.track.frame import PoseLayout, TrackOptions, solve_frame
+from torchfit.track.options import LOST_CONFIDENCE
 
 __all__ = ["FrameRecord", "frame_data", "track"]
 
@@ -119,8 +121,10 @@ def track(
         pred = layout.clip(prev + options.velocity_damping * (prev - prev2))
         res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)
         status = ["ok"] * b
+        # with no good frame yet, a contour that far off is all that can be told lost
+        first = max(options.recover_min_px, LOST_CONFIDENCE * options.confidence_px)
         limit = [
-            max(options.recover_min_px, options.recover_factor * _median(h)) if h else float("inf")
+            max(options.recover_min_px, options.recover_factor * _median(h)) if h else first
             for h in history
         ]
         bad = [i for i in range(b) if float(res.contour_rms[i]) > limit[i]]
