@@ -266,7 +266,7 @@ def test_analytic_frame_jacobian_matches_central_differences(model, camera, dept
     x[:, 3:6] += 0.2  # a root rotation well away from zero
     scales = 1 + 0.1 * torch.rand(1, model.num_segments, 3, generator=g, dtype=torch.float64)
     sampler = EdgeSampler(model.faces, opts.samples_per_edge)
-    pix, _ = _pixels(model, scales, camera, x, None)
+    pix = _pixels(model, scales, camera, x, None)
     sel = select_contour(sampler, pix, person.contours[0], person.valid[0], SIZE, 1.0)
     problem = _FrameResidual(model, scales, person, layout, truth, sampler, sel)
     rows = torch.arange(1)
@@ -307,7 +307,7 @@ def test_the_frame_jacobian_reuses_the_residuals_pass_only_at_its_point(model, c
     other = layout.clip(x + 0.01)
     scales = torch.ones(1, model.num_segments, 3, dtype=torch.float64)
     sampler = EdgeSampler(model.faces, opts.samples_per_edge)
-    pix, _ = _pixels(model, scales, camera, x, None)
+    pix = _pixels(model, scales, camera, x, None)
     sel = select_contour(sampler, pix, person.contours[0], person.valid[0], SIZE, 1.0)
     rows = torch.arange(1)
 

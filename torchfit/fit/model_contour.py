@@ -92,13 +92,19 @@ class EdgeSampler:
         border = ef[:, 1] < 0
         return border | (facing[ef[:, 0]] != facing[np.maximum(ef[:, 1], 0)])
 
-    def all_points(self, pixels: torch.Tensor) -> torch.Tensor:
-        """(B, V, 2) projected vertices -> (B, E*K, 2) sample points."""
-        a = pixels[:, self.edges[:, 0]]  # (B, E, 2)
-        b = pixels[:, self.edges[:, 1]]
+    def all_points(self, pixels: torch.Tensor, edges: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, V, 2) projected vertices -> (B, n*K, 2) sample points of the edges ``edges``
+        (n,) (default: all of them, n = E), in :meth:`sample_index` order."""
+        e = self.edges if edges is None else self.edges[edges]
+        a = pixels[:, e[:, 0]]  # (B, n, 2)
+        b = pixels[:, e[:, 1]]
         t = self.t.to(pixels)[None, None, :, None]
-        pts = a[:, :, None] * (1 - t) + b[:, :, None] * t  # (B, E, K, 2)
+        pts = a[:, :, None] * (1 - t) + b[:, :, None] * t  # (B, n, K, 2)
         return pts.reshape(pixels.shape[0], -1, 2)
+
+    def sample_index(self, edges: np.ndarray) -> np.ndarray:
+        """(n,) edge indices -> the (n*K,) indices of their samples."""
+        return (edges[:, None] * self.k + np.arange(self.k)).reshape(-1)
 
 
 @dataclass
@@ -209,10 +215,9 @@ def select_contour(
     check_shape("pixels", pixels, ("B", "V", 2))
     b = pixels.shape[0]
     w, h = image_size
-    px = pixels.detach().cpu().double().numpy()
+    pxt = pixels.detach().cpu().double()
+    px = pxt.numpy()
     faces = sampler.faces.numpy()
-    edges, k = sampler.edges.numpy(), sampler.k
-    t = sampler.t.numpy()[None, :, None]
     chosen, masks = [], []
     nearest = torch.zeros(person_contours.shape[:2], dtype=torch.long)
     for i in range(b):
@@ -220,11 +225,10 @@ def select_contour(
         masks.append(mask)
         outlines = outer_outlines(mask)
         bpix = (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
-        # the samples of the candidate edges only (EdgeSampler.all_points, restricted)
+        # the samples of the candidate edges only
         cand = np.flatnonzero(sampler.silhouette_edges(px[i]))
-        ends = px[i][edges[cand]]  # (n, 2, 2)
-        p = (ends[:, None, 0] * (1 - t) + ends[:, None, 1] * t).reshape(-1, 2)
-        on = (cand[:, None] * k + np.arange(k)).reshape(-1)
+        p = sampler.all_points(pxt[i : i + 1], torch.from_numpy(cand))[0].numpy()
+        on = sampler.sample_index(cand)
         inside = (p[:, 0] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < h - 0.5)
         on, p = on[inside], p[inside]
         ui = np.clip(np.rint(p[:, 0]), 0, w - 1).astype(np.int64)

@@ -32,6 +32,18 @@ class _Raised:
         self.error = error
 
 
+def _put(ready, item, stopped: Callable[[], bool]) -> bool:
+    """Put ``item`` on the bounded queue ``ready``, waiting while it is full, unless
+    ``stopped()`` says the consumer no longer wants it (then False)."""
+    while not stopped():
+        try:
+            ready.put(item, timeout=_POLL_S)
+            return True
+        except queue.Full:
+            continue
+    return False
+
+
 def prefetch(items: Iterable[T], depth: int = 2) -> Iterator[T]:
     """Yield ``items`` in order, each computed up to ``depth`` items ahead of the consumer.
 
@@ -52,13 +64,7 @@ def prefetch(items: Iterable[T], depth: int = 2) -> Iterator[T]:
     stop = threading.Event()
 
     def put(item) -> bool:
-        while not stop.is_set():
-            try:
-                ready.put(item, timeout=_POLL_S)
-                return True
-            except queue.Full:
-                continue
-        return False
+        return _put(ready, item, stop.is_set)
 
     def work() -> None:
         try:
@@ -91,15 +97,14 @@ def _serve(source, args, ready, threads: int, parent: int) -> None:
 
     torch.set_num_threads(threads)
 
+    def gone() -> bool:
+        if os.getppid() == parent:
+            return False
+        ready.cancel_join_thread()  # the consumer was killed: exit without flushing what
+        return True  # nobody will read
+
     def put(message) -> bool:
-        while True:
-            try:
-                ready.put(message, timeout=_POLL_S)
-                return True
-            except queue.Full:
-                if os.getppid() != parent:  # the consumer is gone (killed): exit without
-                    ready.cancel_join_thread()  # flushing what nobody will read
-                    return False
+        return _put(ready, message, gone)
 
     try:
         for item in source(*args):

@@ -87,7 +87,7 @@ def solve_frame(
     residual = None
     for _ in range(options.rounds):
         with torch.no_grad():
-            pix, _ = _pixels(model, scales, camera, x, None)
+            pix = _pixels(model, scales, camera, x, None)
         sel = select_contour(
             sampler, pix, person.contours[0], person.valid[0], camera.image_size, 1.0
         )

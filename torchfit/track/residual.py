@@ -14,9 +14,9 @@ _STEP = 1e-6
 
 
 def _pixels(model, scales, camera, x, vertex_index):
+    """(B, K, 2) pixels of the posed vertices ``vertex_index`` (None: all) of pose rows ``x``."""
     t, r, q = PoseLayout.split(x)
-    out = model(scales, q, t, r, vertex_index=vertex_index)
-    return project_points(out.vertices, camera), out.vertices
+    return project_points(model(scales, q, t, r, vertex_index=vertex_index).vertices, camera)
 
 
 def _limbs(layout: PoseLayout) -> torch.Tensor:
@@ -86,7 +86,9 @@ class _FrameResidual:
             got = {k: v if v is None else v[index] for k, v in got.items()}
             got["camera"] = self.camera[index]
             got["mask"] = self._mask(got)
-            self._picked = {**dict(list(self._picked.items())[-3:]), key: got}
+            if len(self._picked) >= 4:  # a solve meets few index sets; keep the latest
+                del self._picked[next(iter(self._picked))]
+            self._picked[key] = got
         return self._picked[key]
 
     def _endpoints(self, p: torch.Tensor, rows: dict) -> dict[str, torch.Tensor]:
