@@ -163,6 +163,7 @@ def test_config_digest_ignores_only_the_keys_that_do_not_change_results():
         "run.executor": "ray",  # where the fits run: a run resumes across executors
         "run.address": "auto",
         "run.workers": 4,
+        "run.contour_workers": 3,  # the same choice in worker processes
         "parts.smoothing_px": 7.0,  # the parts options count only for the parts start
     }
     assert set(same) - {"parts.smoothing_px"} == set(UNFINGERPRINTED_KEYS)

@@ -64,6 +64,11 @@ class RunConfig:
         workers: fits at once. Ray: tasks in flight (default: the cluster's CPUs divided by
             ``num_threads``). Local: how many fit processes share this machine (default 1),
             which sets the default ``num_threads``.
+        contour_workers: processes of each fit that share its contour choice (rasterising
+            the model, its outline, the nearest samples: CPU work, image by image), one
+            thread each; 0 chooses in the fit's own process. None: 0 on the CPU, and on a
+            GPU the CPUs left beside the fit (its CPUs less one). The results are the same
+            either way (:mod:`torchfit.fit.contour_pool`).
     """
 
     name: str = "run"
@@ -77,12 +82,17 @@ class RunConfig:
     executor: Literal["local", "ray"] = "local"
     address: str | None = None
     workers: int | None = None
+    contour_workers: int | None = None
 
     def __post_init__(self) -> None:
         for key in ("num_threads", "workers"):
             value = getattr(self, key)
             if value is not None and value < 1:
                 raise ConfigError(f"run.{key}: expected an integer >= 1, got {value!r}")
+        if self.contour_workers is not None and self.contour_workers < 0:
+            raise ConfigError(
+                f"run.contour_workers: expected an integer >= 0, got {self.contour_workers!r}"
+            )
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from torchfit.errors import ShapeError, check_shape
+from torchfit.fit.contour_pool import map_chunks
 from torchfit.viz.raster import outer_outlines, render_silhouette
 
 __all__ = [
@@ -32,6 +33,7 @@ __all__ = [
     "ContourSelection",
     "ContourEndpoints",
     "select_contour",
+    "select_contours",
     "contour_endpoints",
     "point_to_edge_distance",
 ]
@@ -67,6 +69,15 @@ class EdgeSampler:
         self.k = samples_per_edge
         self.t = (torch.arange(samples_per_edge, dtype=torch.float64) + 0.5) / samples_per_edge
         self.faces = f
+
+    def __getstate__(self) -> dict:
+        # as arrays: a tensor pickles through shared memory between processes
+        return {k: v.numpy() if torch.is_tensor(v) else v for k, v in self.__dict__.items()}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(
+            {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in state.items()}
+        )
 
     @property
     def num_samples(self) -> int:
@@ -210,44 +221,102 @@ def select_contour(
         valid sample (the residual turns that into a large constant, see
         :func:`torchfit.fit.residuals.model_to_person` and ``NO_CONTOUR_PENALTY``).
     """
+    return select_contours(
+        sampler, [pixels], [person_contours], [person_valid], image_size, tolerance
+    )[0]
+
+
+@torch.no_grad()
+def select_contours(
+    sampler: EdgeSampler,
+    pixels: list[torch.Tensor],
+    person_contours: list[torch.Tensor],
+    person_valid: list[torch.Tensor],
+    image_size: tuple[int, int],
+    tolerance: float = 1.0,
+) -> list[ContourSelection]:
+    """:func:`select_contour` for several batches of images at once (one per posture, say):
+    their images are spread over the contour worker processes where there are some
+    (:mod:`torchfit.fit.contour_pool`), with the same result.
+
+    Args:
+        pixels, person_contours, person_valid: one (B, V, 2), (B, C, 2) and (B, C) each per
+            batch of images.
+    """
+    items = []
+    for px, contours, valid in zip(pixels, person_contours, person_valid, strict=True):
+        check_shape("pixels", px, ("B", "V", 2))
+        px = px.detach().cpu().double().numpy()
+        contours, valid = contours.cpu().numpy(), valid.cpu().numpy()
+        items += [(px[i], contours[i], valid[i]) for i in range(px.shape[0])]
+    chosen = map_chunks(_choose, items, (sampler, image_size, tolerance))
+    out, at = [], 0
+    for px, contours in zip(pixels, person_contours, strict=True):
+        out.append(_selection(chosen[at : at + px.shape[0]], contours.shape[:2], px.device))
+        at += px.shape[0]
+    return out
+
+
+def _choose(item: tuple, sampler: EdgeSampler, size: tuple[int, int], tolerance: float):
+    """One image's choice: (its contour samples, the position of the one nearest to each
+    person contour pixel (0 where invalid or none), its rendered silhouette packed)."""
     from scipy.spatial import cKDTree
 
-    check_shape("pixels", pixels, ("B", "V", 2))
-    b = pixels.shape[0]
-    w, h = image_size
-    pxt = pixels.detach().cpu().double()
-    px = pxt.numpy()
-    faces = sampler.faces.numpy()
-    chosen, masks = [], []
-    nearest = torch.zeros(person_contours.shape[:2], dtype=torch.long)
-    for i in range(b):
-        mask = render_silhouette(px[i], faces, (w, h))
-        masks.append(mask)
-        outlines = outer_outlines(mask)
-        bpix = (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
-        # the samples of the candidate edges only
-        cand = np.flatnonzero(sampler.silhouette_edges(px[i]))
-        p = sampler.all_points(pxt[i : i + 1], torch.from_numpy(cand))[0].numpy()
-        on = sampler.sample_index(cand)
-        inside = (p[:, 0] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < h - 0.5)
-        on, p = on[inside], p[inside]
-        ui = np.clip(np.rint(p[:, 0]), 0, w - 1).astype(np.int64)
-        vi = np.clip(np.rint(p[:, 1]), 0, h - 1).astype(np.int64)
-        near = _near_boundary(bpix, ui, vi, (w, h), tolerance)
-        on, p = on[near], p[near]
-        chosen.append(on)
-        valid = person_valid[i].cpu().numpy()
-        if len(on) and valid.any():
-            _, idx = cKDTree(p).query(person_contours[i].cpu().numpy()[valid])
-            nearest[i, torch.from_numpy(np.flatnonzero(valid))] = torch.from_numpy(idx)
-    n = max(1, max(len(c) for c in chosen))
+    px, contour, valid = item
+    w, h = size
+    mask = render_silhouette(px, sampler.faces.numpy(), (w, h))
+    outlines = outer_outlines(mask)
+    bpix = (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
+    # the samples of the candidate edges only
+    cand = np.flatnonzero(sampler.silhouette_edges(px))
+    p = sampler.all_points(torch.from_numpy(px)[None], torch.from_numpy(cand))[0].numpy()
+    on = sampler.sample_index(cand)
+    inside = (p[:, 0] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < h - 0.5)
+    on, p = on[inside], p[inside]
+    ui = np.clip(np.rint(p[:, 0]), 0, w - 1).astype(np.int64)
+    vi = np.clip(np.rint(p[:, 1]), 0, h - 1).astype(np.int64)
+    near = _near_boundary(bpix, ui, vi, (w, h), tolerance)
+    on, p = on[near], p[near]
+    nearest = np.zeros(len(valid), np.int64)
+    if len(on) and valid.any():
+        nearest[valid] = cKDTree(p).query(contour[valid])[1]
+    return on, nearest, _pack(mask)
+
+
+def _pack(mask: np.ndarray) -> tuple:
+    """A rendered (H, W) 0/255 silhouette as its bounding box and bits (small to send)."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if not len(rows):
+        return mask.shape, (0, 0, 0, 0), b""
+    box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1)
+    return mask.shape, box, np.packbits(mask[box[0] : box[1], box[2] : box[3]] > 0).tobytes()
+
+
+def _unpack(packed: tuple) -> np.ndarray:
+    """:func:`_pack` undone."""
+    shape, (v0, v1, u0, u1), bits = packed
+    mask = np.zeros(shape, np.uint8)
+    n = (v1 - v0) * (u1 - u0)
+    if n:
+        crop = np.unpackbits(np.frombuffer(bits, np.uint8), count=n).reshape(v1 - v0, u1 - u0)
+        mask[v0:v1, u0:u1] = crop * np.uint8(255)
+    return mask
+
+
+def _selection(chosen: list, contour_shape, device: torch.device) -> ContourSelection:
+    """The :class:`ContourSelection` of a batch's :func:`_choose` results."""
+    b = len(chosen)
+    n = max(1, max(len(on) for on, _, _ in chosen))
     samples = torch.zeros(b, n, dtype=torch.long)
     sample_valid = torch.zeros(b, n, dtype=torch.bool)
-    for i, c in enumerate(chosen):
-        samples[i, : len(c)] = torch.from_numpy(c)
-        sample_valid[i, : len(c)] = True
-    dev = pixels.device
-    return ContourSelection(samples.to(dev), sample_valid.to(dev), nearest.to(dev), masks)
+    nearest = torch.zeros(contour_shape, dtype=torch.long)
+    masks = []
+    for i, (on, near, packed) in enumerate(chosen):
+        samples[i, : len(on)] = torch.from_numpy(on)
+        sample_valid[i, : len(on)] = True
+        nearest[i] = torch.from_numpy(near)
+        masks.append(_unpack(packed))
+    return ContourSelection(samples.to(device), sample_valid.to(device), nearest.to(device), masks)
 
 
 @dataclass

@@ -29,7 +29,7 @@ from torchfit.fit.model_contour import (
     EdgeSampler,
     contour_endpoints,
     point_to_edge_distance,
-    select_contour,
+    select_contours,
 )
 from torchfit.fit.person import PersonData
 from torchfit.fit.pose import Poser, free_joints_for, nominal_angles
@@ -216,19 +216,16 @@ class SilhouetteFit:
         """
         if rows is None:
             rows = torch.arange(full.shape[0], device=full.device)
-        out = {}
         posed = self.poser.world_postures(full, list(self.poses), rows)
-        for k, j in enumerate(self.poses):
-            pixels = self.project(posed[k], rows)
-            out[j] = select_contour(
-                self.sampler,
-                pixels,
-                self.person.contours[k][rows],
-                self.person.valid[k][rows],
-                self.camera.image_size,
-                self.options.contour_tolerance_px,
-            )
-        return out
+        chosen = select_contours(
+            self.sampler,
+            [self.project(posed[k], rows) for k in range(len(self.poses))],
+            [self.person.contours[k][rows] for k in range(len(self.poses))],
+            [self.person.valid[k][rows] for k in range(len(self.poses))],
+            self.camera.image_size,
+            self.options.contour_tolerance_px,
+        )
+        return dict(zip(self.poses, chosen, strict=True))
 
     def _sample_rows(self, k: int, rows: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
         """Bilinear D_P of pose index k for each row's subject at (N, n, 2) points."""

@@ -52,8 +52,8 @@ FINGERPRINT_FILE = "fingerprint.json"
 #: content), speed settings (``run.num_threads``, ``run.keep_heap``,
 #: ``segmentation.compile``, ``fit.batch_size``: a subject's fit does not depend on the
 #: others of its batch), where the fits run (``run.executor``, ``run.address``,
-#: ``run.workers``: a run resumes across executors) and the run-level TensorBoard files
-#: (``output.tensorboard``).
+#: ``run.workers``, ``run.contour_workers``: a run resumes across executors) and the run-level
+#: TensorBoard files (``output.tensorboard``).
 UNFINGERPRINTED_KEYS = (
     "run.name",
     "run.out",
@@ -63,6 +63,7 @@ UNFINGERPRINTED_KEYS = (
     "run.executor",
     "run.address",
     "run.workers",
+    "run.contour_workers",
     "data.root",
     "data.subjects",
     "model.template",

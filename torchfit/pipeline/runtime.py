@@ -9,9 +9,10 @@ import torch
 
 from torchfit.config.schema import RunConfig
 from torchfit.errors import ConfigError
+from torchfit.fit.contour_pool import set_contour_workers
 from torchfit.solver import keep_heap
 
-__all__ = ["apply_runtime", "torch_dtype", "cpu_count", "local_threads"]
+__all__ = ["apply_runtime", "torch_dtype", "cpu_count", "local_threads", "contour_workers"]
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +42,20 @@ def local_threads(run: RunConfig, cores: int | None = None) -> int:
     return min(threads, int(omp)) if omp.isdigit() and int(omp) > 0 else threads
 
 
+def contour_workers(run: RunConfig, cores: int | None = None) -> int:
+    """The contour choice's worker processes: ``run.contour_workers``; else none on the CPU
+    and, on a GPU, the CPUs beside the fit's own (``cores - 1``)."""
+    if run.contour_workers is not None:
+        return run.contour_workers
+    if torch.device(run.device).type == "cpu":
+        return 0
+    return max(0, (cpu_count() if cores is None else cores) - 1)
+
+
 def apply_runtime(run: RunConfig) -> None:
-    """Set the torch thread count (:func:`local_threads`), check the device and set glibc's
-    heap policy as ``run`` asks.
+    """Set the torch thread count (:func:`local_threads`) and the contour choice's worker
+    processes (:func:`contour_workers`), check the device and set glibc's heap policy as
+    ``run`` asks.
 
     Raises:
         ConfigError: ``run.device`` names a device torch cannot use here.
@@ -55,5 +67,6 @@ def apply_runtime(run: RunConfig) -> None:
         raise ConfigError(f"run.device: {exc}") from None
     if device.type == "cuda" and run.executor == "local" and not torch.cuda.is_available():
         raise ConfigError(f"run.device: {run.device!r} but torch sees no CUDA device here")
+    set_contour_workers(contour_workers(run))
     if run.keep_heap and not keep_heap():
         log.warning("run.keep_heap: the C library is not glibc; the setting has no effect")

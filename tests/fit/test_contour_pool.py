@@ -1,0 +1,101 @@
+"""The contour choice's worker processes: the same choice as in the fit's own process."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from torchfit.body.model import BodyModel
+from torchfit.config.schema import RunConfig
+from torchfit.errors import ConfigError
+from torchfit.fit import contour_pool
+from torchfit.fit.model_contour import EdgeSampler, _pack, _unpack, select_contours
+from torchfit.pipeline.runtime import contour_workers
+
+SIZE = (160, 200)
+
+
+@pytest.fixture
+def workers():
+    """Two contour workers for the test, none after it."""
+    contour_pool.set_contour_workers(2)
+    yield 2
+    contour_pool.set_contour_workers(0)
+
+
+def _images(n: int, seed: int):
+    """The template's mesh seen from n cameras (orthographic, turned about the vertical),
+    and a noisy ring of person contour pixels per image with some padding."""
+    model = BodyModel("mpeg4_full")
+    v = model(**model.zeros(1)).vertices[0]  # (V, 3), metres
+    g = torch.Generator().manual_seed(seed)
+    pixels, contours = [], []
+    for _ in range(n):
+        a = float(torch.rand(1, generator=g)) * 6.28
+        x = v[:, 0] * np.cos(a) + v[:, 2] * np.sin(a)
+        px = torch.stack([80 + 90 * x, 190 - 90 * v[:, 1]], 1)
+        pixels.append(px + 0.3 * torch.randn(px.shape, generator=g, dtype=px.dtype))
+        t = torch.linspace(0, 6.28, 120, dtype=torch.float64)
+        contours.append(torch.stack([80 + 30 * t.cos(), 100 + 80 * t.sin()], 1))
+    valid = torch.ones(n, 120, dtype=torch.bool)
+    valid[:, 100:] = False
+    return model, torch.stack(pixels).double(), torch.stack(contours), valid
+
+
+def _same(a, b) -> None:
+    assert torch.equal(a.samples, b.samples)
+    assert torch.equal(a.sample_valid, b.sample_valid)
+    assert torch.equal(a.nearest, b.nearest)
+    assert len(a.masks) == len(b.masks)
+    assert all(np.array_equal(x, y) for x, y in zip(a.masks, b.masks, strict=True))
+
+
+def test_workers_choose_exactly_what_the_process_itself_chooses(workers):
+    model, pix, contours, valid = _images(7, seed=3)
+    sampler = EdgeSampler(model.faces, 4)
+    # two "postures": 4 and 3 images
+    args = ([pix[:4], pix[4:]], [contours[:4], contours[4:]], [valid[:4], valid[4:]])
+    pooled = select_contours(sampler, *args, SIZE, 1.0)
+    contour_pool.set_contour_workers(0)
+    alone = select_contours(sampler, *args, SIZE, 1.0)
+    assert [s.samples.shape[0] for s in pooled] == [4, 3]
+    for a, b in zip(pooled, alone, strict=True):
+        _same(a, b)
+    # the meshes are in view: every image has a contour and nearest samples
+    assert all(bool(s.sample_valid.any(1).all()) for s in alone)
+    assert all(bool((s.nearest[:, :100] > 0).any()) for s in alone)
+
+
+def test_packed_silhouettes_come_back_unchanged():
+    g = np.random.default_rng(0)
+    mask = np.zeros((50, 70), np.uint8)
+    mask[10:31, 5:44] = 255 * (g.random((21, 39)) > 0.5)
+    for m in (mask, np.zeros((50, 70), np.uint8), np.full((50, 70), 255, np.uint8)):
+        back = _unpack(pickle.loads(pickle.dumps(_pack(m))))
+        assert back.dtype == np.uint8 and np.array_equal(back, m)
+
+
+def test_the_edge_sampler_pickles_as_arrays():
+    model = BodyModel("mpeg4_simple")
+    s = EdgeSampler(model.faces, 3)
+    state = s.__getstate__()
+    assert not any(torch.is_tensor(v) for v in state.values())
+    back = pickle.loads(pickle.dumps(s))
+    for key in ("edges", "edge_faces", "faces", "t"):
+        assert torch.equal(getattr(back, key), getattr(s, key))
+    assert back.k == 3
+
+
+def test_contour_workers_setting():
+    assert contour_workers(RunConfig()) == 0  # the CPU: the fit's own process
+    assert contour_workers(RunConfig(device="cuda"), cores=8) == 7
+    assert contour_workers(RunConfig(device="cuda"), cores=1) == 0
+    assert contour_workers(RunConfig(device="cuda", contour_workers=3), cores=8) == 3
+    assert contour_workers(RunConfig(contour_workers=2)) == 2
+    with pytest.raises(ConfigError, match="run.contour_workers"):
+        RunConfig(contour_workers=-1)
+    with pytest.raises(ValueError, match="contour workers"):
+        contour_pool.set_contour_workers(-2)

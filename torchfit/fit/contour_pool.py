@@ -1,0 +1,87 @@
+"""Worker processes for the contour choice.
+
+The contour choice (:func:`torchfit.fit.model_contour.select_contours`) rasterises every
+image's projected mesh, traces its outline and queries a k-d tree: CPU work, one image at a
+time, and on a GPU fit the larger part of the time. Its images are independent, so it can
+spread them over processes. Each image is chosen by the same function in a worker as in this
+process, so the choice, and the fit, are the same bit for bit.
+
+The pool is process-wide and made at first use: :func:`set_contour_workers` sets its size
+(0, the default: no pool, every image chosen here). Workers are spawned, not forked (a forked
+copy of a process that runs torch's thread pools or CUDA can hang), each with one torch
+thread; the pool ends with the process or at the next :func:`set_contour_workers`.
+"""
+
+from __future__ import annotations
+
+import atexit
+import multiprocessing
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+
+__all__ = ["set_contour_workers", "contour_workers", "map_chunks"]
+
+_size = 0
+_pool: ProcessPoolExecutor | None = None
+
+
+def set_contour_workers(n: int) -> None:
+    """Choose the contour choice's worker processes (0: none, every image in this process).
+
+    Raises:
+        ValueError: ``n`` is negative.
+    """
+    global _size
+    if n < 0:
+        raise ValueError(f"contour workers: expected an integer >= 0, got {n!r}")
+    if n != _size:
+        _shutdown()
+        _size = n
+
+
+def contour_workers() -> int:
+    """The number of contour worker processes (0: none)."""
+    return _size
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _shutdown() -> None:
+    global _pool
+    if _pool is not None:
+        _pool.shutdown(wait=True, cancel_futures=True)
+        _pool = None
+
+
+atexit.register(_shutdown)
+
+
+def map_chunks(fn: Callable, items: Sequence, shared: tuple) -> list:
+    """``[fn(item, *shared) for item in items]``, over the worker processes where there are
+    some and more than one item; else in this process.
+
+    ``fn`` must be a module-level function; ``items`` are sent in one chunk per worker,
+    ``shared`` once with each chunk.
+    """
+    global _pool
+    if _size == 0 or len(items) < 2:
+        return [fn(item, *shared) for item in items]
+    if _pool is None:
+        _pool = ProcessPoolExecutor(
+            _size, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker
+        )
+    n = -(-len(items) // _size)
+    chunks = [items[i : i + n] for i in range(0, len(items), n)]
+    out = []
+    for part in _pool.map(_run_chunk, [(fn, chunk, shared) for chunk in chunks]):
+        out.extend(part)
+    return out
+
+
+def _run_chunk(task: tuple) -> list:
+    fn, chunk, shared = task
+    return [fn(item, *shared) for item in chunk]
