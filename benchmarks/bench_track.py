@@ -8,10 +8,12 @@ gain alone). Silhouettes are segmented once beforehand and timed separately (per
 tracker's time per frame per sequence is measured for B = 1 and B = ``--batch``, interleaved
 ``--repeats`` times (medians quoted), as wall time and as this process's CPU time (the latter
 holds better on a shared machine). The first frame (its start hypotheses) is not timed.
-``--baseline`` also times the tracker with those options changed (``configs/track.yaml``'s
-``track:`` keys), interleaved with the defaults in the same process. ``--prepared`` hands the
-tracker each frame's contours and distance maps made beforehand (timed separately, per image),
-as ``tools/track.py`` does in its reader process, instead of the silhouettes.
+``--contour-workers N`` spreads the contour choice over N processes (started during the
+untimed first frame). ``--baseline`` also times the tracker with those options changed
+(``configs/track.yaml``'s ``track:`` keys), interleaved with the defaults in the same process.
+``--prepared`` hands the tracker each frame's contours and distance maps made beforehand (timed
+separately, per image), as ``tools/track.py`` does in its reader process, instead of the
+silhouettes.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import yaml
 
 from torchfit.body.model import BodyModel
 from torchfit.camera import stack_cameras
+from torchfit.fit.contour_pool import set_contour_workers
 from torchfit.image import fit_background, segment
 from torchfit.io.images import load_frames
 from torchfit.pipeline.track import TrackConfig, load_fitted, load_sequence
@@ -44,7 +47,15 @@ def main() -> None:
     p.add_argument(
         "--prepared", action="store_true", help="frames as contours and distance maps (see above)"
     )
+    p.add_argument(
+        "--contour-workers",
+        type=int,
+        default=0,
+        help="processes sharing the contour choice (torchfit.fit.contour_pool); the CPU times "
+        "are this process's alone",
+    )
     args = p.parse_args()
+    set_contour_workers(args.contour_workers)
     cfg = TrackConfig()
     variants = {"defaults": cfg.track}
     if args.baseline:
@@ -102,7 +113,11 @@ def main() -> None:
                 )
                 wall[name, b].append(1000 * (time.perf_counter() - t0) / (args.frames * b))
                 cpu[name, b].append(1000 * (time.process_time() - c0) / (args.frames * b))
-    report = {"segmentation_ms_per_image": round(seg_ms, 1), "threads": torch.get_num_threads()}
+    report = {
+        "segmentation_ms_per_image": round(seg_ms, 1),
+        "threads": torch.get_num_threads(),
+        "contour_workers": args.contour_workers,
+    }
     if prep_ms is not None:
         report["contours_and_distance_maps_ms_per_image"] = round(prep_ms, 1)
     for name in variants:

@@ -99,3 +99,26 @@ def test_contour_workers_setting():
         RunConfig(contour_workers=-1)
     with pytest.raises(ValueError, match="contour workers"):
         contour_pool.set_contour_workers(-2)
+
+
+def test_a_killed_worker_costs_one_call_its_speed_not_its_result(workers, caplog):
+    import os
+    import signal
+
+    model, pix, contours, valid = _images(4, seed=5)
+    sampler = EdgeSampler(model.faces, 4)
+    args = ([pix], [contours], [valid])
+    first = select_contours(sampler, *args, SIZE, 1.0)[0]
+    pids = list(contour_pool._pool._processes)
+    assert len(pids) >= 1
+    for pid in pids:
+        os.kill(pid, signal.SIGKILL)
+    with caplog.at_level("WARNING", logger="torchfit.fit.contour_pool"):
+        again = select_contours(sampler, *args, SIZE, 1.0)[0]
+    assert "contour worker process died" in caplog.text
+    _same(again, first)
+    assert contour_pool._pool is None
+    # the next call starts a new pool, with the same result
+    _same(select_contours(sampler, *args, SIZE, 1.0)[0], first)
+    assert contour_pool._pool is not None
+    assert not set(contour_pool._pool._processes) & set(pids)

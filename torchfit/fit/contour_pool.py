@@ -15,11 +15,14 @@ thread; the pool ends with the process or at the next :func:`set_contour_workers
 from __future__ import annotations
 
 import atexit
+import logging
 import multiprocessing
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
 
 __all__ = ["set_contour_workers", "contour_workers", "map_chunks"]
+
+log = logging.getLogger(__name__)
 
 _size = 0
 _pool: ProcessPoolExecutor | None = None
@@ -65,7 +68,8 @@ def map_chunks(fn: Callable, items: Sequence, shared: tuple) -> list:
     some and more than one item; else in this process.
 
     ``fn`` must be a module-level function; ``items`` are sent in one chunk per worker,
-    ``shared`` once with each chunk.
+    ``shared`` once with each chunk. Where a worker dies, this call does the work itself and
+    the next one starts a new pool; an error that ``fn`` raises reaches the caller.
     """
     global _pool
     if _size == 0 or len(items) < 2:
@@ -76,10 +80,16 @@ def map_chunks(fn: Callable, items: Sequence, shared: tuple) -> list:
         )
     n = -(-len(items) // _size)
     chunks = [items[i : i + n] for i in range(0, len(items), n)]
-    out = []
-    for part in _pool.map(_run_chunk, [(fn, chunk, shared) for chunk in chunks]):
-        out.extend(part)
-    return out
+    try:
+        return [
+            out for part in _pool.map(_run_chunk, [(fn, c, shared) for c in chunks]) for out in part
+        ]
+    except BrokenExecutor as exc:
+        # a worker died (killed, out of memory): the same work here, and a new pool next time
+        log.warning("a contour worker process died (%s); choosing in this process", exc)
+        _pool.shutdown(wait=False, cancel_futures=True)
+        _pool = None
+        return [fn(item, *shared) for item in items]
 
 
 def _run_chunk(task: tuple) -> list:
