@@ -122,3 +122,11 @@ def test_a_killed_worker_costs_one_call_its_speed_not_its_result(workers, caplog
     _same(select_contours(sampler, *args, SIZE, 1.0)[0], first)
     assert contour_pool._pool is not None
     assert not set(contour_pool._pool._processes) & set(pids)
+
+
+def test_workers_start_ahead_of_the_first_choice(workers):
+    futures = contour_pool.start_contour_workers()
+    assert len(futures) == 2 and all(f.result(timeout=120) for f in futures)
+    assert len(contour_pool._pool._processes) == 2
+    contour_pool.set_contour_workers(0)
+    assert contour_pool._pool is None and contour_pool.start_contour_workers() == []

@@ -20,7 +20,7 @@ import multiprocessing
 from collections.abc import Callable, Sequence
 from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
 
-__all__ = ["set_contour_workers", "contour_workers", "map_chunks"]
+__all__ = ["set_contour_workers", "contour_workers", "start_contour_workers", "map_chunks"]
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,28 @@ def set_contour_workers(n: int) -> None:
 def contour_workers() -> int:
     """The number of contour worker processes (0: none)."""
     return _size
+
+
+def start_contour_workers() -> list:
+    """Start the workers now, without waiting for them (each imports torch: seconds), so that
+    they start while the caller reads and segments; returns one future per worker, done when
+    it is up."""
+    if _size == 0:
+        return []
+    return [_executor().submit(_ready) for _ in range(_size)]
+
+
+def _executor() -> ProcessPoolExecutor:
+    global _pool
+    if _pool is None:
+        _pool = ProcessPoolExecutor(
+            _size, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker
+        )
+    return _pool
+
+
+def _ready() -> bool:
+    return True
 
 
 def _init_worker() -> None:
@@ -74,16 +96,11 @@ def map_chunks(fn: Callable, items: Sequence, shared: tuple) -> list:
     global _pool
     if _size == 0 or len(items) < 2:
         return [fn(item, *shared) for item in items]
-    if _pool is None:
-        _pool = ProcessPoolExecutor(
-            _size, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker
-        )
     n = -(-len(items) // _size)
     chunks = [items[i : i + n] for i in range(0, len(items), n)]
     try:
-        return [
-            out for part in _pool.map(_run_chunk, [(fn, c, shared) for c in chunks]) for out in part
-        ]
+        parts = _executor().map(_run_chunk, [(fn, c, shared) for c in chunks])
+        return [out for part in parts for out in part]
     except BrokenExecutor as exc:
         # a worker died (killed, out of memory): the same work here, and a new pool next time
         log.warning("a contour worker process died (%s); choosing in this process", exc)

@@ -93,13 +93,14 @@ def _fit_task(
     """One batch, on a worker: fit into a temporary folder, return the results and the files
     (paths relative to the run folder)."""
     from torchfit.body.model import BodyModel
-    from torchfit.fit.contour_pool import set_contour_workers
+    from torchfit.fit.contour_pool import set_contour_workers, start_contour_workers
     from torchfit.pipeline.run import fit_subjects
     from torchfit.pipeline.runtime import contour_workers, torch_dtype
 
     torch.set_num_threads(threads)
     # the task's CPUs: its fit's own and, on a GPU, the rest for the contour choice
     set_contour_workers(contour_workers(config.run, cores=threads))
+    start_contour_workers()
     key = (config.model.template, config.run.device, config.run.dtype)
     if key not in _MODELS:
         _MODELS[key] = BodyModel(key[0], device=key[1], dtype=torch_dtype(key[2]))

@@ -9,7 +9,7 @@ import torch
 
 from torchfit.config.schema import RunConfig
 from torchfit.errors import ConfigError
-from torchfit.fit.contour_pool import set_contour_workers
+from torchfit.fit.contour_pool import set_contour_workers, start_contour_workers
 from torchfit.solver import keep_heap
 
 __all__ = ["apply_runtime", "torch_dtype", "cpu_count", "local_threads", "contour_workers"]
@@ -53,9 +53,9 @@ def contour_workers(run: RunConfig, cores: int | None = None) -> int:
 
 
 def apply_runtime(run: RunConfig) -> None:
-    """Set the torch thread count (:func:`local_threads`) and the contour choice's worker
-    processes (:func:`contour_workers`), check the device and set glibc's heap policy as
-    ``run`` asks.
+    """Set the torch thread count (:func:`local_threads`) and start the contour choice's
+    worker processes (:func:`contour_workers`; a local run's), check the device and set
+    glibc's heap policy as ``run`` asks.
 
     Raises:
         ConfigError: ``run.device`` names a device torch cannot use here.
@@ -67,6 +67,8 @@ def apply_runtime(run: RunConfig) -> None:
         raise ConfigError(f"run.device: {exc}") from None
     if device.type == "cuda" and run.executor == "local" and not torch.cuda.is_available():
         raise ConfigError(f"run.device: {run.device!r} but torch sees no CUDA device here")
-    set_contour_workers(contour_workers(run))
+    # with Ray the fits run in the tasks, which set their own
+    set_contour_workers(contour_workers(run) if run.executor == "local" else 0)
+    start_contour_workers()  # they start while the subjects are read and segmented
     if run.keep_heap and not keep_heap():
         log.warning("run.keep_heap: the C library is not glibc; the setting has no effect")
