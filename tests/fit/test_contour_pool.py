@@ -130,3 +130,24 @@ def test_workers_start_ahead_of_the_first_choice(workers):
     assert len(contour_pool._pool._processes) == 2
     contour_pool.set_contour_workers(0)
     assert contour_pool._pool is None and contour_pool.start_contour_workers() == []
+
+
+def test_workers_that_keep_dying_are_given_up(workers, caplog):
+    import os
+    import signal
+
+    model, pix, contours, valid = _images(3, seed=7)
+    sampler = EdgeSampler(model.faces, 4)
+    args = ([pix], [contours], [valid])
+    alone = None
+    for attempt in range(contour_pool.MAX_BROKEN):
+        select_contours(sampler, *args, SIZE, 1.0)  # makes a pool
+        for pid in list(contour_pool._pool._processes):
+            os.kill(pid, signal.SIGKILL)
+        with caplog.at_level("WARNING", logger="torchfit.fit.contour_pool"):
+            alone = select_contours(sampler, *args, SIZE, 1.0)[0]
+    assert "contour worker processes died twice" in caplog.text
+    assert "__main__" in caplog.text
+    assert contour_pool.contour_workers() == 0 and contour_pool._pool is None
+    contour_pool.set_contour_workers(0)
+    _same(select_contours(sampler, *args, SIZE, 1.0)[0], alone)

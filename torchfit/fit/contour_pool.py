@@ -9,7 +9,11 @@ process, so the choice, and the fit, are the same bit for bit.
 The pool is process-wide and made at first use: :func:`set_contour_workers` sets its size
 (0, the default: no pool, every image chosen here). Workers are spawned, not forked (a forked
 copy of a process that runs torch's thread pools or CUDA can hang), each with one torch
-thread; the pool ends with the process or at the next :func:`set_contour_workers`.
+thread; the pool ends with the process or at the next :func:`set_contour_workers`. Spawned
+workers import the main module, so a script that uses them keeps its code under
+``if __name__ == "__main__":``. A call whose pool breaks (a worker killed, or a script without
+that guard) does its work in this process; after :data:`MAX_BROKEN` broken pools the process
+stops using workers, with a warning.
 """
 
 from __future__ import annotations
@@ -26,6 +30,10 @@ log = logging.getLogger(__name__)
 
 _size = 0
 _pool: ProcessPoolExecutor | None = None
+_broken = 0
+
+#: Broken pools after which a process stops using workers.
+MAX_BROKEN = 2
 
 
 def set_contour_workers(n: int) -> None:
@@ -34,12 +42,13 @@ def set_contour_workers(n: int) -> None:
     Raises:
         ValueError: ``n`` is negative.
     """
-    global _size
+    global _size, _broken
     if n < 0:
         raise ValueError(f"contour workers: expected an integer >= 0, got {n!r}")
     if n != _size:
         _shutdown()
         _size = n
+        _broken = 0
 
 
 def contour_workers() -> int:
@@ -93,7 +102,7 @@ def map_chunks(fn: Callable, items: Sequence, shared: tuple) -> list:
     ``shared`` once with each chunk. Where a worker dies, this call does the work itself and
     the next one starts a new pool; an error that ``fn`` raises reaches the caller.
     """
-    global _pool
+    global _pool, _size, _broken
     if _size == 0 or len(items) < 2:
         return [fn(item, *shared) for item in items]
     n = -(-len(items) // _size)
@@ -102,10 +111,22 @@ def map_chunks(fn: Callable, items: Sequence, shared: tuple) -> list:
         parts = _executor().map(_run_chunk, [(fn, c, shared) for c in chunks])
         return [out for part in parts for out in part]
     except BrokenExecutor as exc:
-        # a worker died (killed, out of memory): the same work here, and a new pool next time
-        log.warning("a contour worker process died (%s); choosing in this process", exc)
+        # a worker died (killed, out of memory): the same work here, and a new pool next time;
+        # a second broken pool ends the workers for this process (a script that starts them at
+        # import, without `if __name__ == "__main__":`, breaks every pool it makes)
         _pool.shutdown(wait=False, cancel_futures=True)
         _pool = None
+        _broken += 1
+        if _broken >= MAX_BROKEN:
+            log.warning(
+                "contour worker processes died twice (%s); the contour choice stays in this "
+                "process from now on. A script that runs the fit with workers needs its code "
+                'under `if __name__ == "__main__":` (they import the main module)',
+                exc,
+            )
+            _size = 0
+        else:
+            log.warning("a contour worker process died (%s); choosing in this process", exc)
         return [fn(item, *shared) for item in items]
 
 
