@@ -140,7 +140,7 @@ def test_workers_that_keep_dying_are_given_up(workers, caplog):
     sampler = EdgeSampler(model.faces, 4)
     args = ([pix], [contours], [valid])
     alone = None
-    for attempt in range(contour_pool.MAX_BROKEN):
+    for _ in range(contour_pool.MAX_BROKEN):
         select_contours(sampler, *args, SIZE, 1.0)  # makes a pool
         for pid in list(contour_pool._pool._processes):
             os.kill(pid, signal.SIGKILL)
