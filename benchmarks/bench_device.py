@@ -2,15 +2,19 @@
 
     python benchmarks/bench_device.py --data DIR [--config configs/benchmark.yaml]
         [--device cuda] [--dtype float32] [--batch-sizes 1,16,64,256] [--budget-s 600]
-        [--parts-batch 64] [--profile-batch 64] [--measurements FILE] [--set KEY=VALUE ...]
+        [--short N] [--parts-batch 64] [--profile-batch 64] [--measurements FILE]
+        [--set KEY=VALUE ...]
 
 1. Every subject of DIR is read and segmented once, on the CPU, as ``tools/fit.py`` does
    (timed: the segmentation's seconds per subject, reported separately).
 2. A warm-up fit of two iterations per stage at B = 2 (CUDA context, kernels, caches).
 3. For each B, a batch cycling through the segmented subjects is fitted on the device: the
    initial guess, every stage of the config and the measurements (outputs are not written).
-   Subjects per hour = 3600 B / seconds. A B whose predicted time (from the last B's seconds
-   per subject) would overrun ``--budget-s`` is skipped and said so.
+   Subjects per hour = 3600 B / seconds. A B whose predicted time would overrun
+   ``--budget-s`` is skipped and said so: the prediction is the line through the last two
+   batches' times (a fixed part and a part per subject), or after one batch its time per
+   subject times B (an overestimate, since batching pays). ``--short N`` gives every stage
+   of the config at most N iterations, to see how a batch scales in little time.
 4. ``--parts-batch``: the same fit once more with the parts timed (the device synchronised
    around each): the contour choice (posing every vertex, then on the CPU: rasterising,
    outline, k-d tree), the Jacobian with its residual, the trial residuals, the initial
@@ -25,6 +29,7 @@ holds them all) as JSON, to compare devices and dtypes.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import importlib
 import json
@@ -40,7 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from torchfit.body.measure import measure_model  # noqa: E402
 from torchfit.body.model import BodyModel  # noqa: E402
-from torchfit.config import load_config  # noqa: E402
+from torchfit.config import load_config, replace_keys  # noqa: E402
 from torchfit.fit import SilhouetteFit  # noqa: E402
 from torchfit.io.dataset import load_dataset  # noqa: E402
 from torchfit.pipeline.prepare import prepare_subject  # noqa: E402
@@ -49,11 +54,21 @@ from torchfit.pipeline.runtime import apply_runtime, torch_dtype  # noqa: E402
 #: the module ``torchfit.pipeline.run`` (the package exports a function of that name)
 run_module = importlib.import_module("torchfit.pipeline.run")
 
-#: A stage schedule of two iterations each, for the warm-up and the profile.
-SHORT = (
-    "fit.stages=[{name: a, scales: [legs, upper_body], joints: true, root: true, max_iter: 2,"
-    " loss: linear}, {name: b, scales: [all], joints: true, root: true, max_iter: 2}]"
-)
+
+def predict(history: list[tuple[int, float]], b: int) -> float:
+    """Seconds for a batch of ``b`` from the (B, seconds) of the batches before it."""
+    if len(history) >= 2 and history[-1][0] != history[-2][0]:
+        (b0, s0), (b1, s1) = history[-2:]
+        per = max(0.0, (s1 - s0) / (b1 - b0))
+        return max(s1, s1 + per * (b - b1))
+    b1, s1 = history[-1]
+    return s1 / b1 * b
+
+
+def shortened(config, n: int):
+    """``config`` with every stage limited to ``n`` iterations."""
+    stages = [dataclasses.replace(st, max_iter=n) for st in config.fit.stages]
+    return replace_keys(config, {"fit.stages": stages})
 
 
 def sync(device: torch.device) -> None:
@@ -163,6 +178,7 @@ def main() -> int:
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32")
     parser.add_argument("--batch-sizes", default="1,16,64,256")
     parser.add_argument("--budget-s", type=float, default=600.0)
+    parser.add_argument("--short", type=int, default=0, metavar="N")
     parser.add_argument("--parts-batch", type=int, default=0)
     parser.add_argument("--profile-batch", type=int, default=0)
     parser.add_argument("--measurements", type=Path)
@@ -171,7 +187,9 @@ def main() -> int:
     begun = time.perf_counter()
     sets = [*args.set, f"run.device={args.device}", f"run.dtype={args.dtype}"]
     config = load_config(args.config, sets)
-    short = load_config(args.config, [*sets, SHORT])
+    if args.short:
+        config = shortened(config, args.short)
+    short = shortened(config, 2)
     apply_runtime(config.run)
     device = torch.device(args.device)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
@@ -200,17 +218,19 @@ def main() -> int:
         "| iterations per subject |"
     )
     print("|---|---|---|---|---|---|")
-    per_subject = None
+    history: list[tuple[int, float]] = []
     saved = None
     for b in [int(v) for v in args.batch_sizes.split(",") if v]:
         left = args.budget_s - (time.perf_counter() - begun)
-        if per_subject is not None and per_subject * b > left:
-            print(f"| {b} | skipped: about {per_subject * b:.0f} s predicted, {left:.0f} s left |")
+        if history and predict(history, b) > left:
+            print(
+                f"| {b} | skipped: about {predict(history, b):.0f} s predicted, {left:.0f} s left |"
+            )
             continue
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         s, measures, records = fit_once(cycle(b), model, config, device)
-        per_subject = s / b
+        history.append((b, s))
         peak = torch.cuda.max_memory_allocated(device) / 1e9 if device.type == "cuda" else 0.0
         iters = sum(sum(r.iterations for r in rec) for rec in records) / b
         print(
