@@ -37,7 +37,10 @@ def valid_entries(mask: torch.Tensor | None, batch: int) -> list[torch.Tensor | 
     """
     if mask is None:
         return [None] * batch
-    return [row.nonzero()[:, 0] for row in mask]
+    # one nonzero over the batch, split by rows: the same ascending indices per row as each
+    # row's own nonzero, with two host synchronisations instead of one per problem
+    columns = mask.nonzero()[:, 1].contiguous()
+    return list(columns.split(mask.sum(1).tolist()))
 
 
 def _own(values: torch.Tensor, index: torch.Tensor | None, dim: int) -> torch.Tensor:
