@@ -86,3 +86,16 @@ def test_a_solve_with_blocks_follows_the_dense_solve():
     torch.testing.assert_close(sparse.x, dense.x, rtol=0, atol=1e-10)
     target = torch.tensor([[0.5, -1.0, 2.0, 0.3]], dtype=torch.float64)
     torch.testing.assert_close(sparse.x, target, rtol=0, atol=1e-6)
+
+
+def test_valid_entries_are_each_problems_own_ascending_indices():
+    g = torch.Generator().manual_seed(3)
+    mask = torch.rand(6, 40, generator=g) > 0.5
+    mask[1] = False  # a problem with no valid entry
+    mask[4] = True
+    got = valid_entries(mask, 6)
+    assert len(got) == 6
+    for row, idx in zip(mask, got, strict=True):
+        assert idx.dtype == torch.long and torch.equal(idx, torch.arange(40)[row])
+    assert got[1].numel() == 0 and got[4].numel() == 40
+    assert valid_entries(None, 3) == [None, None, None]
