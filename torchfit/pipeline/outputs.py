@@ -163,7 +163,7 @@ def write_overlays(
     """
     name = prepared.subject.name
     for j in fit.poses:
-        image = prepared.images[j - 1].permute(1, 2, 0).numpy()
+        image = prepared.float_images([j - 1])[0].permute(1, 2, 0).numpy()
         overlay = fit_overlay(
             (image * 255).round().astype(np.uint8),
             prepared.masks[j - 1].numpy(),

@@ -73,7 +73,7 @@ def _fit(
     cameras = stack_cameras([p.subject.camera for p in prepared])
     person = person_data(config, masks, shadow, cameras, model.dtype).to(model.device)
     fit = build_problem(model, person, config, [p.subject.facts for p in prepared])
-    x, starts = start_params(fit, config, masks, [p.images[used] for p in prepared])
+    x, starts = start_params(fit, config, masks, [p.float_images(used) for p in prepared])
     if starts is not None:
         for name, info in zip(names, starts, strict=True):
             if info.message:
