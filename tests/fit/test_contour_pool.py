@@ -49,8 +49,8 @@ def _same(a, b) -> None:
     assert torch.equal(a.samples, b.samples)
     assert torch.equal(a.sample_valid, b.sample_valid)
     assert torch.equal(a.nearest, b.nearest)
-    assert len(a.masks) == len(b.masks)
-    assert all(np.array_equal(x, y) for x, y in zip(a.masks, b.masks, strict=True))
+    assert len(a.silhouettes) == len(b.silhouettes)
+    assert all(np.array_equal(a.mask(i), b.mask(i)) for i in range(len(a.silhouettes)))
 
 
 def test_workers_choose_exactly_what_the_process_itself_chooses(workers):

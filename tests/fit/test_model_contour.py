@@ -132,7 +132,7 @@ def test_select_contour_on_a_square_lies_on_the_rendered_outline():
     expected = [i for i in range(s.num_samples) if i // k != 1]
     assert sorted(chosen.tolist()) == expected
     # the chosen samples lie on the outline of the rendered mask
-    mask = sel.masks[0]
+    mask = sel.mask(0)
     assert mask.shape == (64, 64) and mask[26, 30] == 255 and mask[5, 5] == 0
     outline = _outline_pixels(mask)
     pts = s.all_points(pix)[0, chosen].numpy()
@@ -175,12 +175,12 @@ def test_select_contour_batch_padding_off_image_and_empty():
     assert (sel.nearest[2] == 0).all()  # nothing to point to
     # repeat_interleave: row b*r + i is row b
     rep = sel.repeat_interleave(2)
-    assert rep.samples.shape == (6, 8) and len(rep.masks) == 6
+    assert rep.samples.shape == (6, 8) and len(rep.silhouettes) == 6
     for r in range(6):
         assert torch.equal(rep.samples[r], sel.samples[r // 2])
         assert torch.equal(rep.sample_valid[r], sel.sample_valid[r // 2])
         assert torch.equal(rep.nearest[r], sel.nearest[r // 2])
-        assert rep.masks[r] is sel.masks[r // 2]
+        assert rep.silhouettes[r] is sel.silhouettes[r // 2]
 
 
 def test_contour_endpoints_resolve_the_selection():

@@ -127,24 +127,30 @@ class ContourSelection:
         sample_valid: (B, N) bool, False on padding.
         nearest: (B, C) for each person contour pixel, the position (into ``samples``' second
             dimension) of its nearest selected sample; 0 where invalid.
-        masks: list of B (H, W) uint8 rendered model silhouettes (for overlays and tests).
+        silhouettes: the B rendered model silhouettes, packed (a bounding box and its bits:
+            a full (H, W) mask per image is 415 KB at 720x576, gigabytes for a large batch);
+            :meth:`mask` unpacks one (for overlays and tests).
     """
 
     samples: torch.Tensor
     sample_valid: torch.Tensor
     nearest: torch.Tensor
-    masks: list[np.ndarray]
+    silhouettes: list[tuple]
+
+    def mask(self, i: int) -> np.ndarray:
+        """The (H, W) uint8 silhouette of image ``i``: 255 inside, 0 outside."""
+        return _unpack(self.silhouettes[i])
 
     def repeat_interleave(self, repeats: int) -> ContourSelection:
         """The same choice for every row of a batch folded ``repeats`` times (row b*r + i)."""
         rep = lambda x: x.repeat_interleave(repeats, dim=0)  # noqa: E731
-        masks = [m for m in self.masks for _ in range(repeats)]
+        masks = [m for m in self.silhouettes for _ in range(repeats)]
         return ContourSelection(rep(self.samples), rep(self.sample_valid), rep(self.nearest), masks)
 
     def take(self, rows: torch.Tensor) -> ContourSelection:
         """The choice of the images ``rows`` (N,), in that order (padding kept)."""
         at = rows.to(self.samples.device)
-        masks = [self.masks[i] for i in rows.tolist()]
+        masks = [self.silhouettes[i] for i in rows.tolist()]
         return ContourSelection(self.samples[at], self.sample_valid[at], self.nearest[at], masks)
 
     def put(self, rows: torch.Tensor, other: ContourSelection) -> ContourSelection:
@@ -155,8 +161,8 @@ class ContourSelection:
         """
         width = max(self.samples.shape[1], other.samples.shape[1])
         at = rows.to(self.samples.device)
-        masks = list(self.masks)
-        for i, mask in zip(rows.tolist(), other.masks, strict=True):
+        masks = list(self.silhouettes)
+        for i, mask in zip(rows.tolist(), other.silhouettes, strict=True):
             masks[i] = mask
         return ContourSelection(
             _widen(self.samples, width).index_copy(0, at, _widen(other.samples, width)),
@@ -315,7 +321,7 @@ def _selection(chosen: list, contour_shape, device: torch.device) -> ContourSele
         samples[i, : len(on)] = torch.from_numpy(on)
         sample_valid[i, : len(on)] = True
         nearest[i] = torch.from_numpy(near)
-        masks.append(_unpack(packed))
+        masks.append(packed)
     return ContourSelection(samples.to(device), sample_valid.to(device), nearest.to(device), masks)
 
 

@@ -167,7 +167,7 @@ def write_overlays(
         overlay = fit_overlay(
             (image * 255).round().astype(np.uint8),
             prepared.masks[j - 1].numpy(),
-            selections[j].masks[i],
+            selections[j].mask(i),
             f"{name} pose{j} {POSTURES[j - 1].name}",
             prepared.shadow[j - 1].numpy() if fit.person.uncertain is not None else None,
         )
