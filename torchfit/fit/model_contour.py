@@ -144,14 +144,14 @@ class ContourSelection:
     def repeat_interleave(self, repeats: int) -> ContourSelection:
         """The same choice for every row of a batch folded ``repeats`` times (row b*r + i)."""
         rep = lambda x: x.repeat_interleave(repeats, dim=0)  # noqa: E731
-        masks = [m for m in self.silhouettes for _ in range(repeats)]
-        return ContourSelection(rep(self.samples), rep(self.sample_valid), rep(self.nearest), masks)
+        sil = [m for m in self.silhouettes for _ in range(repeats)]
+        return ContourSelection(rep(self.samples), rep(self.sample_valid), rep(self.nearest), sil)
 
     def take(self, rows: torch.Tensor) -> ContourSelection:
         """The choice of the images ``rows`` (N,), in that order (padding kept)."""
         at = rows.to(self.samples.device)
-        masks = [self.silhouettes[i] for i in rows.tolist()]
-        return ContourSelection(self.samples[at], self.sample_valid[at], self.nearest[at], masks)
+        sil = [self.silhouettes[i] for i in rows.tolist()]
+        return ContourSelection(self.samples[at], self.sample_valid[at], self.nearest[at], sil)
 
     def put(self, rows: torch.Tensor, other: ContourSelection) -> ContourSelection:
         """This choice with the images ``rows`` (N,) replaced by ``other``'s N images.
@@ -161,14 +161,14 @@ class ContourSelection:
         """
         width = max(self.samples.shape[1], other.samples.shape[1])
         at = rows.to(self.samples.device)
-        masks = list(self.silhouettes)
-        for i, mask in zip(rows.tolist(), other.silhouettes, strict=True):
-            masks[i] = mask
+        sil = list(self.silhouettes)
+        for i, packed in zip(rows.tolist(), other.silhouettes, strict=True):
+            sil[i] = packed
         return ContourSelection(
             _widen(self.samples, width).index_copy(0, at, _widen(other.samples, width)),
             _widen(self.sample_valid, width).index_copy(0, at, _widen(other.sample_valid, width)),
             self.nearest.index_copy(0, at, other.nearest),
-            masks,
+            sil,
         )
 
 
@@ -316,13 +316,13 @@ def _selection(chosen: list, contour_shape, device: torch.device) -> ContourSele
     samples = torch.zeros(b, n, dtype=torch.long)
     sample_valid = torch.zeros(b, n, dtype=torch.bool)
     nearest = torch.zeros(contour_shape, dtype=torch.long)
-    masks = []
-    for i, (on, near, packed) in enumerate(chosen):
+    for i, (on, near, _) in enumerate(chosen):
         samples[i, : len(on)] = torch.from_numpy(on)
         sample_valid[i, : len(on)] = True
         nearest[i] = torch.from_numpy(near)
-        masks.append(packed)
-    return ContourSelection(samples.to(device), sample_valid.to(device), nearest.to(device), masks)
+    silhouettes = [packed for _, _, packed in chosen]
+    dev = device
+    return ContourSelection(samples.to(dev), sample_valid.to(dev), nearest.to(dev), silhouettes)
 
 
 @dataclass

@@ -165,9 +165,10 @@ def _masks(seqs: list[Sequence], backgrounds, options: SegmentationOptions):
 
 
 def _frames(seqs, backgrounds, cameras, config: TrackConfig, dtype):
-    """Per frame, the silhouettes (B, H, W) and the tracker's person data made from them."""
-    for masks in _masks(seqs, backgrounds, config.segmentation):
-        yield masks, frame_data(masks, cameras, config.track, dtype)
+    """Per frame, the tracker's person data, with the silhouettes (B, H, W) they were made from
+    for the first frame only (its start needs them; later ones would be sent for nothing)."""
+    for f, masks in enumerate(_masks(seqs, backgrounds, config.segmentation)):
+        yield masks if f == 0 else None, frame_data(masks, cameras, config.track, dtype)
 
 
 def _joints(model: BodyModel, scales: torch.Tensor, x: torch.Tensor) -> dict[str, np.ndarray]:

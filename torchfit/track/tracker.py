@@ -111,6 +111,8 @@ def track(
         it = progress(it)
     # a bad frame is solved again from the last good one, pulled towards it, for longer
     recovery = replace(options, iterations=2 * options.iterations)
+    # with no good frame yet, a contour that far off is all that can be told lost
+    first = max(options.recover_min_px, LOST_CONFIDENCE * options.confidence_px)
     for f, mask in enumerate(it):
         t0 = time.perf_counter()
         person = (
@@ -121,8 +123,6 @@ def track(
         pred = layout.clip(prev + options.velocity_damping * (prev - prev2))
         res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)
         status = ["ok"] * b
-        # with no good frame yet, a contour that far off is all that can be told lost
-        first = max(options.recover_min_px, LOST_CONFIDENCE * options.confidence_px)
         limit = [
             max(options.recover_min_px, options.recover_factor * _median(h)) if h else first
             for h in history
