@@ -225,7 +225,9 @@ def select_contour(
     Returns:
         :class:`ContourSelection`. An image whose model has no contour sample in view gets no
         valid sample (the residual turns that into a large constant, see
-        :func:`torchfit.fit.residuals.model_to_person` and ``NO_CONTOUR_PENALTY``).
+        :func:`torchfit.fit.residuals.model_to_person` and ``NO_CONTOUR_PENALTY``). Samples
+        outside the image are not chosen, nor are those near the image frame only because the
+        rendered silhouette runs along it where the model leaves the picture.
     """
     return select_contours(
         sampler, [pixels], [person_contours], [person_valid], image_size, tolerance
@@ -273,6 +275,10 @@ def _choose(item: tuple, sampler: EdgeSampler, size: tuple[int, int], tolerance:
     mask = render_silhouette(px, sampler.faces.numpy(), (w, h))
     outlines = outer_outlines(mask)
     bpix = (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
+    # where the model leaves the picture, its rendered outline runs along the image frame:
+    # that run is the picture's edge, not the model's contour
+    frame = (bpix[:, 0] <= 0) | (bpix[:, 0] >= w - 1) | (bpix[:, 1] <= 0) | (bpix[:, 1] >= h - 1)
+    bpix = bpix[~frame]
     # the samples of the candidate edges only
     cand = np.flatnonzero(sampler.silhouette_edges(px))
     p = sampler.all_points(torch.from_numpy(px)[None], torch.from_numpy(cand))[0].numpy()

@@ -111,6 +111,12 @@ def person_data_from_masks(
     Returns:
         :class:`PersonData`; an empty silhouette gives an empty contour and a map of large
         constant distance (that pose then only constrains through e_M).
+
+    A silhouette cut by the image frame (a hand or the feet outside the picture) has outline
+    pixels along the frame that are the picture's edge, not the person's: they do not count in
+    e_P and are not D_P's seeds, so the model is free to reach beyond the frame where the
+    person does (its contour points outside the image do not count in e_M either,
+    :func:`torchfit.fit.model_contour.select_contour`).
     """
     b, n_pose, h, w = masks.shape
     near = None
@@ -133,14 +139,16 @@ def person_data_from_masks(
         ok = torch.zeros(b, n, dtype=torch.bool)
         for i, c in enumerate(traced):
             pts[i, : len(c)] = c.to(dtype)
-            ok[i, : len(c)] = True
+            ok[i, : len(c)] = ~_on_frame(c, h, w)
             if near is not None and len(c):
                 c = c.long()
                 ok[i, : len(c)] &= ~near[i, k, c[:, 1], c[:, 0]]
         contours.append(pts)
         valid.append(ok)
         # D_P's seeds are the traced outlines (what mask_to_distance_map would trace again)
-        seeds = outline_mask(outlines, h, w, masks.device)
+        # less the image frame's pixels
+        inner = [c[~_on_frame(c, h, w)] for c in outlines]
+        seeds = outline_mask(inner, h, w, masks.device)
         if crop_margin_px is None:
             dmap = distance_map(seeds, method)[:, 0]
         else:
@@ -148,6 +156,13 @@ def person_data_from_masks(
         maps.append(torch.nan_to_num(dmap, posinf=float(h + w)))
     flags = None if uncertain is None else [uncertain[:, k] for k in range(n_pose)]
     return PersonData(contours, valid, maps, camera, flags)
+
+
+def _on_frame(pixels: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(N,) bool: which (N, 2) ``(u, v)`` pixels lie on the image's outermost rows or
+    columns, where the frame cuts a silhouette."""
+    u, v = pixels[:, 0], pixels[:, 1]
+    return (u <= 0) | (u >= width - 1) | (v <= 0) | (v >= height - 1)
 
 
 def _cropped_distance_map(

@@ -21,7 +21,7 @@ from torchfit.errors import DataError, SegmentationError
 from torchfit.fit.person import PersonData, person_data_from_masks
 from torchfit.image.background import BackgroundModel, fit_background
 from torchfit.image.chroma import ChromaKeyOptions, chroma_key, despill, key_colour
-from torchfit.image.plausibility import implausible
+from torchfit.image.plausibility import implausible, silhouette_shape
 from torchfit.image.segment import SegmentationOptions, clean_mask, segment
 from torchfit.io.dataset import Subject
 from torchfit.io.images import load_frames, read_mask
@@ -109,7 +109,8 @@ def segment_postures(
     Returns:
         images (6, 3, H, W) in [0, 1], silhouettes (6, H, W) bool, the pixels the shadow
         test removed (6, H, W) bool, notes on what was done beyond the configured chain (a
-        posture segmented again), and flags (silhouettes that do not reach the floor).
+        posture segmented again), and flags (silhouettes that do not reach the floor or that
+        the image frame cuts, :func:`frame_cuts`).
 
     Raises:
         DataError: invalid subject folder, or a mask that cannot be read or has the wrong
@@ -151,7 +152,35 @@ def segment_postures(
     wrong = [f"pose{i + 1}: {why}" for i, why in enumerate(reasons) if why]
     if wrong:
         raise SegmentationError(f"segmentation implausible in {'; in '.join(wrong)}")
-    return images, masks, shadow, notes, flags
+    return images, masks, shadow, notes, flags + frame_cuts(masks)
+
+
+_BORDERS = ("top", "bottom", "left", "right")
+
+
+def frame_cuts(masks: torch.Tensor) -> list[str]:
+    """One flag per silhouette the image frame cuts (a hand or the feet outside the picture).
+
+    The fit leaves the frame's run of the outline out (:func:`person_data_from_masks`), so the
+    model reaches beyond it, but what lies beyond is not measured: the lengths through that
+    part rest on the other postures (a T-pose whose hands are cut says nothing of the arm
+    span). Such a posture is a flag: the judge makes the subject ``poor_fit``.
+
+    Args:
+        masks: (J, H, W) bool silhouettes.
+
+    Returns:
+        e.g. ``"pose4: the image frame cuts the silhouette (left, right border): its parts
+        beyond the picture are not measured, check the overlays"``.
+    """
+    touches = silhouette_shape(masks[:, None])["touches"].tolist()
+    return [
+        f"pose{j + 1}: the image frame cuts the silhouette "
+        f"({', '.join(b for b, t in zip(_BORDERS, row, strict=True) if t)} border): its parts "
+        "beyond the picture are not measured, check the overlays"
+        for j, row in enumerate(touches)
+        if any(row)
+    ]
 
 
 def floor_reach(masks: torch.Tensor, camera: Camera) -> list[float]:
