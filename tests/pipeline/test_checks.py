@@ -2,6 +2,7 @@
 
 import csv
 import importlib.util
+import math
 from pathlib import Path
 
 import pytest
@@ -15,6 +16,7 @@ from torchfit.pipeline.checks import (
     population_ranges,
     proportion_flags,
     proportion_outliers,
+    root_bound_flags,
 )
 from torchfit.pipeline.judge import judge
 from torchfit.pipeline.stages import StageRecord
@@ -94,6 +96,22 @@ def test_committed_table_matches_the_derivation(shared_data):
 def test_scales_on_their_upper_bound():
     flags = bound_flags([1.0, 1.89, 0.4], ["a:x", "b:y", "c:z"], (0.4, 1.9))
     assert flags == ["scale b:y = 1.89 at its upper bound 1.9"]
+
+
+def test_postures_on_the_protocols_translation_or_yaw_limit():
+    on_mark = {"tx": 0.03, "ty": -0.149, "yaw": math.radians(14.9), "roll": 0.0, "pitch": 0.09}
+    off = {"tx": -0.15, "ty": 0.02, "yaw": 0.0, "roll": 0.0, "pitch": 0.0}
+    turned = {"tx": 0.0, "ty": 0.0, "yaw": math.radians(-15.0), "roll": 0.0, "pitch": -0.09}
+    flags = root_bound_flags({1: on_mark, 2: off, 4: turned}, 0.15, 15.0)
+    assert flags == [
+        "pose2: the floor translation ended on its 0.15 m limit (fit.translation_max_m): the "
+        "person stood off the floor mark, or the fit could not place them",
+        "pose4: the yaw ended on its 15 deg limit (fit.yaw_max_deg): the person turned further "
+        "than the posture asks, or the fit could not place them",
+    ]
+    # the tilts on their 5 deg bound (0.087 rad) are no flag: the pitch is along the line of
+    # sight in a facing posture, and ends there in good fits
+    assert root_bound_flags({1: on_mark}, 0.15, 15.0) == []
 
 
 def test_flags_make_a_poor_fit_with_their_message():

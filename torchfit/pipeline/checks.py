@@ -1,5 +1,6 @@
 """What the judge checks a fitted body against, without the truth: human proportions (from
-ANSUR II) and scales that ended on their upper bound.
+ANSUR II), scales that ended on their upper bound, and postures whose floor translation or yaw
+ended on the capture protocol's limits.
 
 The proportion table ``proportions.csv`` beside this module is derived by
 ``tools/make_proportions.py``: per measurement, percentiles and the geometric mean of its
@@ -20,6 +21,7 @@ ratio to the height among the 6068 soldiers of ANSUR II. Two checks read it:
 from __future__ import annotations
 
 import csv
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -35,6 +37,7 @@ __all__ = [
     "population_ranges",
     "proportion_outliers",
     "bound_flags",
+    "root_bound_flags",
 ]
 
 #: The committed table (``tools/make_proportions.py``).
@@ -187,3 +190,44 @@ def bound_flags(
         for name, s in zip(names, scales, strict=True)
         if s >= hi * (1 - tol)
     ]
+
+
+def root_bound_flags(
+    offsets: Mapping[int, Mapping[str, float]],
+    translation_max_m: float,
+    yaw_max_deg: float,
+    tol: float = 1e-3,
+) -> list[str]:
+    """Messages for the postures whose floor translation or yaw ended on its limit.
+
+    design.md's protocol has the person on the floor mark (within ``translation_max_m``) and
+    facing as the posture says (within ``yaw_max_deg``); the fit holds each posture's root to
+    that. A posture that ends on such a limit is one the person struck elsewhere, or one the
+    fit could not place: on the development sets most of them belong to subjects already
+    ``poor_fit`` for other reasons, and the rest include arm spans 3–7 % off. The tilts are
+    not checked: the pitch of a facing posture is along the line of sight, and ends on its
+    bound in good fits too (benchmarks/RESULTS.md, "Depth in the facing postures").
+
+    Args:
+        offsets: posture number -> its root offsets (``tx``, ``ty`` metres, ``yaw`` radians).
+        translation_max_m, yaw_max_deg: the limits (``fit.translation_max_m``,
+            ``fit.yaw_max_deg``).
+        tol: relative distance from a limit that counts as on it.
+    """
+    flags = []
+    for j, o in sorted(offsets.items()):
+        shift = max(abs(o["tx"]), abs(o["ty"]))
+        if shift >= translation_max_m * (1 - tol):
+            flags.append(
+                f"pose{j}: the floor translation ended on its {translation_max_m:g} m limit "
+                "(fit.translation_max_m): the person stood off the floor mark, or the fit "
+                "could not place them"
+            )
+        yaw = abs(math.degrees(o["yaw"]))
+        if yaw >= yaw_max_deg * (1 - tol):
+            flags.append(
+                f"pose{j}: the yaw ended on its {yaw_max_deg:g} deg limit (fit.yaw_max_deg): "
+                "the person turned further than the posture asks, or the fit could not place "
+                "them"
+            )
+    return flags

@@ -4,8 +4,9 @@ After the last stage the postures of each subject are compared
 (:func:`torchfit.fit.stages.pose_outliers` on their contour RMS): one that disagrees with the
 others is down-weighted (``fit.pose_outlier_weight``) and the last stage runs once more
 (``<name>_reweighted``) for the subjects with such a posture only. At the end, the down-weighted
-postures, implausible body proportions (:mod:`torchfit.pipeline.checks`) and scales on their
-upper bound become the ``flags`` of the subject's last stage record, which the judge reads.
+postures, implausible body proportions (:mod:`torchfit.pipeline.checks`), scales on their
+upper bound and postures whose floor translation or yaw ended on its limit become the
+``flags`` of the subject's last stage record, which the judge reads.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from torchfit.pipeline.checks import (
     population_ranges,
     proportion_flags,
     proportion_outliers,
+    root_bound_flags,
 )
 from torchfit.solver import LMStatus
 
@@ -277,6 +279,8 @@ def _final_flags(
         hard = proportion_flags(values)
         flags += hard or [o.describe() for o in proportion_outliers(values, ranges)]
         flags += bound_flags([float(x[i, c]) for c in free], names, fit.scale_bounds)
+        offsets = {j: fit.layout.root_offsets(x[i], j) for j in fit.poses}
+        flags += root_bound_flags(offsets, fit.options.translation_max_m, fit.options.yaw_max_deg)
         out.append(flags)
     return out
 
