@@ -189,6 +189,8 @@ def test_capture_picks_a_frame_inside_each_held_stretch(tmp_path):
     for k in range(1, 7):
         first, last = doc["holds"][f"pose{k}"]
         assert first <= capture["postures"][f"pose{k}"]["frame"] <= last
+        assert capture["postures"][f"pose{k}"]["frame_cut"] == []  # inside the picture
+    assert "the image frame cuts" not in done.stderr
     assert capture["background_frames"][-1] <= doc["empty"][1]
     from torchfit.io.dataset import load_subject
 

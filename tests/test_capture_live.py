@@ -104,6 +104,7 @@ def test_page_serves_frame_status_and_captures(live):
     pose1 = json.loads((out / "capture.json").read_text())["postures"]["pose1"]
     last = pose1["frame"]
     assert pose1["combined_frames"] == [last - 2, last - 1, last]
+    assert pose1["frame_cut"] == []
     assert 10 <= last < 24  # within posture 1's 14 frames after the 10 background ones
 
 

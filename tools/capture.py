@@ -244,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
                 "frame": result.chosen.get(k),
                 "combined_frames": result.combined.get(k),
                 "score": round(result.scores.get(k, 0.0), 4),
+                "frame_cut": result.cut.get(k),
             }
             for k in range(1, 7)
         },
@@ -265,6 +266,13 @@ def main(argv: list[str] | None = None) -> int:
         if len(used) > 1:
             where += f" (median of {used[0]}-{used[-1]})"
         print(f"pose{k} ({entry['name']}): {where}, score {entry['score']:.3f}")
+        if entry["frame_cut"]:
+            print(
+                f"warning: pose{k} ({entry['name']}): the image frame cuts the person "
+                f"({', '.join(entry['frame_cut'])} border); the fit will flag it: step back or "
+                "widen the view",
+                file=sys.stderr,
+            )
     if result.missing:
         names = ", ".join(f"pose{k} ({POSTURE_NAMES[k - 1]})" for k in result.missing)
         print(

@@ -74,6 +74,7 @@ def test_the_true_pose_fits_a_silhouette_the_frame_cuts(model):
 
 
 def test_a_posture_the_frame_cuts_is_flagged_with_its_borders():
+    from torchfit.image.plausibility import cut_borders
     from torchfit.pipeline.prepare import frame_cuts
 
     masks = torch.zeros(3, 60, 80, dtype=torch.bool)
@@ -86,3 +87,4 @@ def test_a_posture_the_frame_cuts_is_flagged_with_its_borders():
         "pose3: the image frame cuts the silhouette (bottom border): its parts beyond the "
         "picture are not measured, check the overlays",
     ]
+    assert cut_borders(masks[:, None]) == [[], ["left", "right"], ["bottom"]]

@@ -40,6 +40,7 @@ from torchfit.capture.offline import (
 )
 from torchfit.errors import DataError
 from torchfit.image.background import fit_background
+from torchfit.image.plausibility import cut_borders
 from torchfit.image.segment import SegmentationOptions, segment
 from torchfit.io.camera import save_camera
 from torchfit.io.files import write_atomic
@@ -218,7 +219,11 @@ def run_live(
                 held = 0
                 hold.clear()
             name = POSTURE_NAMES[target - 1]
-            status.update(score=score, message=f"strike posture {target}: {name}")
+            cut = cut_borders(torch.from_numpy(mask)[None, None])[0]
+            message = f"strike posture {target}: {name}"
+            if cut:  # the fit flags a posture the picture cuts
+                message += f" - step back: the picture cuts you at the {', '.join(cut)}"
+            status.update(score=score, message=message)
             server.publish(
                 _annotate(frame, templates[target - 1], score, status["message"]), status
             )
@@ -236,6 +241,7 @@ def run_live(
                     "frame": number,
                     "score": round(score, 4),
                     "combined_frames": [hold[i][0] for i in used],
+                    "frame_cut": cut,
                 }
                 write_atomic(out / "capture.json", json.dumps({"postures": record}, indent=1))
                 captured.append(target)

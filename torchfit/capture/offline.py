@@ -41,6 +41,7 @@ from torchfit.body.postures import pose_nominal
 from torchfit.camera import Camera, project_points
 from torchfit.errors import DataError
 from torchfit.image.background import fit_background
+from torchfit.image.plausibility import cut_borders
 from torchfit.image.segment import SegmentationOptions, segment
 from torchfit.io.dataset import MIN_BACKGROUND_FRAMES, N_POSES
 from torchfit.viz.raster import render_silhouette
@@ -91,6 +92,8 @@ class CaptureResult:
         missing: the posture numbers not found.
         combined: posture number -> the frames whose median is its image (ascending; the
             chosen frame alone with ``hold_frames`` 1).
+        cut: posture number -> the image borders that cut the chosen frame's silhouette
+            (empty when the person is inside the picture); the fit flags such a posture.
     """
 
     background: list[int]
@@ -99,6 +102,7 @@ class CaptureResult:
     scores: dict[int, float] = field(default_factory=dict)
     stretches: list[tuple[int, int]] = field(default_factory=list)
     missing: list[int] = field(default_factory=list)
+    cut: dict[int, list[str]] = field(default_factory=dict)
 
 
 def _float(frames: torch.Tensor) -> torch.Tensor:
@@ -343,4 +347,6 @@ def capture_from_frames(
                 options.hold_iou,
             )
             result.combined[k] = [i + n_empty for i in local]
+            chosen = masks_t[result.chosen[k] - n_empty]
+            result.cut[k] = cut_borders(chosen[None, None])[0]
     return result

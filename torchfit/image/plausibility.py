@@ -32,7 +32,7 @@ import torch
 
 from torchfit.errors import ShapeError
 
-__all__ = ["PlausibilityOptions", "silhouette_shape", "implausible"]
+__all__ = ["PlausibilityOptions", "silhouette_shape", "implausible", "cut_borders"]
 
 
 @dataclass(frozen=True)
@@ -82,6 +82,17 @@ def silhouette_shape(masks: torch.Tensor) -> dict[str, torch.Tensor]:
         "borders": touches.sum(1),
         "touches": touches,
     }
+
+
+#: the image borders in :func:`silhouette_shape`'s ``touches`` order
+BORDERS = ("top", "bottom", "left", "right")
+
+
+def cut_borders(masks: torch.Tensor) -> list[list[str]]:
+    """The image borders (:data:`BORDERS` names) that cut each ``(B, 1, H, W)`` bool mask:
+    the silhouette goes on beyond the picture there (a hand, the feet)."""
+    touches = silhouette_shape(masks)["touches"].tolist()
+    return [[b for b, t in zip(BORDERS, row, strict=True) if t] for row in touches]
 
 
 def _extent(any_along: torch.Tensor) -> torch.Tensor:

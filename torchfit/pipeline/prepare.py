@@ -21,7 +21,7 @@ from torchfit.errors import DataError, SegmentationError
 from torchfit.fit.person import PersonData, person_data_from_masks
 from torchfit.image.background import BackgroundModel, fit_background
 from torchfit.image.chroma import ChromaKeyOptions, chroma_key, despill, key_colour
-from torchfit.image.plausibility import implausible, silhouette_shape
+from torchfit.image.plausibility import cut_borders, implausible
 from torchfit.image.segment import SegmentationOptions, clean_mask, segment
 from torchfit.io.dataset import Subject
 from torchfit.io.images import load_frames, read_mask
@@ -155,9 +155,6 @@ def segment_postures(
     return images, masks, shadow, notes, flags + frame_cuts(masks)
 
 
-_BORDERS = ("top", "bottom", "left", "right")
-
-
 def frame_cuts(masks: torch.Tensor) -> list[str]:
     """One flag per silhouette the image frame cuts (a hand or the feet outside the picture).
 
@@ -173,13 +170,11 @@ def frame_cuts(masks: torch.Tensor) -> list[str]:
         e.g. ``"pose4: the image frame cuts the silhouette (left, right border): its parts
         beyond the picture are not measured, check the overlays"``.
     """
-    touches = silhouette_shape(masks[:, None])["touches"].tolist()
     return [
-        f"pose{j + 1}: the image frame cuts the silhouette "
-        f"({', '.join(b for b, t in zip(_BORDERS, row, strict=True) if t)} border): its parts "
+        f"pose{j + 1}: the image frame cuts the silhouette ({', '.join(cut)} border): its parts "
         "beyond the picture are not measured, check the overlays"
-        for j, row in enumerate(touches)
-        if any(row)
+        for j, cut in enumerate(cut_borders(masks[:, None]))
+        if cut
     ]
 
 
