@@ -104,14 +104,17 @@ def test_postures_on_the_protocols_translation_or_yaw_limit():
     turned = {"tx": 0.0, "ty": 0.0, "yaw": math.radians(-15.0), "roll": 0.0, "pitch": -0.09}
     flags = root_bound_flags({1: on_mark, 2: off, 4: turned}, 0.15, 15.0)
     assert flags == [
-        "pose2: the floor translation ended on its 0.15 m limit (fit.translation_max_m): the "
-        "person stood off the floor mark, or the fit could not place them",
-        "pose4: the yaw ended on its 15 deg limit (fit.yaw_max_deg): the person turned further "
-        "than the posture asks, or the fit could not place them",
+        "pose2: the floor translation ended on its 0.15 m limit (fit.translation_max_m)",
+        "pose4: the yaw ended on its 15 deg limit (fit.yaw_max_deg) (2 postures on a limit: the "
+        "person stood off the floor mark or turned, or the fit could not place them)",
     ]
-    # the tilts on their 5 deg bound (0.087 rad) are no flag: the pitch is along the line of
-    # sight in a facing posture, and ends there in good fits
-    assert root_bound_flags({1: on_mark}, 0.15, 15.0) == []
+    # one posture on a limit is no flag (good fits have one), nor are the tilts on their
+    # 5 deg bound (0.087 rad): the pitch is along the line of sight in a facing posture
+    assert root_bound_flags({1: on_mark, 2: off}, 0.15, 15.0) == []
+    assert root_bound_flags({1: on_mark, 4: turned}, 0.15, 15.0, min_postures=1) == [
+        "pose4: the yaw ended on its 15 deg limit (fit.yaw_max_deg) (1 posture on a limit: the "
+        "person stood off the floor mark or turned, or the fit could not place them)"
+    ]
 
 
 def test_flags_make_a_poor_fit_with_their_message():
