@@ -1,6 +1,6 @@
 """What the judge checks a fitted body against, without the truth: human proportions (from
 ANSUR II), scales that ended on their upper bound, and postures whose floor translation or yaw
-ended on the capture protocol's limits.
+ended on the capture protocol's limits (two or more of them).
 
 The proportion table ``proportions.csv`` beside this module is derived by
 ``tools/make_proportions.py``: per measurement, percentiles and the geometric mean of its

@@ -5,8 +5,8 @@ After the last stage the postures of each subject are compared
 others is down-weighted (``fit.pose_outlier_weight``) and the last stage runs once more
 (``<name>_reweighted``) for the subjects with such a posture only. At the end, the down-weighted
 postures, implausible body proportions (:mod:`torchfit.pipeline.checks`), scales on their
-upper bound and postures whose floor translation or yaw ended on its limit become the
-``flags`` of the subject's last stage record, which the judge reads.
+upper bound and the postures whose floor translation or yaw ended on its limit (when two or
+more did) become the ``flags`` of the subject's last stage record, which the judge reads.
 """
 
 from __future__ import annotations
