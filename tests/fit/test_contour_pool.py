@@ -13,7 +13,7 @@ from torchfit.config.schema import RunConfig
 from torchfit.errors import ConfigError
 from torchfit.fit import contour_pool
 from torchfit.fit.model_contour import EdgeSampler, _pack, _unpack, select_contours
-from torchfit.pipeline.runtime import contour_workers
+from torchfit.pipeline.runtime import contour_workers_for
 
 SIZE = (160, 200)
 
@@ -90,11 +90,11 @@ def test_the_edge_sampler_pickles_as_arrays():
 
 
 def test_contour_workers_setting():
-    assert contour_workers(RunConfig()) == 0  # the CPU: the fit's own process
-    assert contour_workers(RunConfig(device="cuda"), cores=8) == 7
-    assert contour_workers(RunConfig(device="cuda"), cores=1) == 0
-    assert contour_workers(RunConfig(device="cuda", contour_workers=3), cores=8) == 3
-    assert contour_workers(RunConfig(contour_workers=2)) == 2
+    assert contour_workers_for(RunConfig()) == 0  # the CPU: the fit's own process
+    assert contour_workers_for(RunConfig(device="cuda"), cores=8) == 7
+    assert contour_workers_for(RunConfig(device="cuda"), cores=1) == 0
+    assert contour_workers_for(RunConfig(device="cuda", contour_workers=3), cores=8) == 3
+    assert contour_workers_for(RunConfig(contour_workers=2)) == 2
     with pytest.raises(ConfigError, match="run.contour_workers"):
         RunConfig(contour_workers=-1)
     with pytest.raises(ValueError, match="contour workers"):

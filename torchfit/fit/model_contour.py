@@ -26,6 +26,7 @@ import torch
 
 from torchfit.errors import ShapeError, check_shape
 from torchfit.fit.contour_pool import map_chunks
+from torchfit.image.contours import on_image_frame
 from torchfit.viz.raster import outer_outlines, render_silhouette
 
 __all__ = [
@@ -277,8 +278,7 @@ def _choose(item: tuple, sampler: EdgeSampler, size: tuple[int, int], tolerance:
     bpix = (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
     # where the model leaves the picture, its rendered outline runs along the image frame:
     # that run is the picture's edge, not the model's contour
-    frame = (bpix[:, 0] <= 0) | (bpix[:, 0] >= w - 1) | (bpix[:, 1] <= 0) | (bpix[:, 1] >= h - 1)
-    bpix = bpix[~frame]
+    bpix = bpix[~on_image_frame(bpix, w, h)]
     # the samples of the candidate edges only
     cand = np.flatnonzero(sampler.silhouette_edges(px))
     p = sampler.all_points(torch.from_numpy(px)[None], torch.from_numpy(cand))[0].numpy()
@@ -327,8 +327,9 @@ def _selection(chosen: list, contour_shape, device: torch.device) -> ContourSele
         sample_valid[i, : len(on)] = True
         nearest[i] = torch.from_numpy(near)
     silhouettes = [packed for _, _, packed in chosen]
-    dev = device
-    return ContourSelection(samples.to(dev), sample_valid.to(dev), nearest.to(dev), silhouettes)
+    return ContourSelection(
+        samples.to(device), sample_valid.to(device), nearest.to(device), silhouettes
+    )
 
 
 @dataclass

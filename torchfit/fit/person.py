@@ -11,7 +11,7 @@ import torch
 
 from torchfit.camera import Camera
 from torchfit.errors import ShapeError
-from torchfit.image.contours import outline_mask, trace_outer_contour
+from torchfit.image.contours import on_image_frame, outline_mask, trace_outer_contour
 from torchfit.image.distance import distance_map
 
 __all__ = ["PersonData", "person_data_from_masks"]
@@ -139,7 +139,7 @@ def person_data_from_masks(
         ok = torch.zeros(b, n, dtype=torch.bool)
         for i, c in enumerate(traced):
             pts[i, : len(c)] = c.to(dtype)
-            ok[i, : len(c)] = ~_on_frame(c, h, w)
+            ok[i, : len(c)] = ~on_image_frame(c, w, h)
             if near is not None and len(c):
                 c = c.long()
                 ok[i, : len(c)] &= ~near[i, k, c[:, 1], c[:, 0]]
@@ -147,7 +147,7 @@ def person_data_from_masks(
         valid.append(ok)
         # D_P's seeds are the traced outlines (what mask_to_distance_map would trace again)
         # less the image frame's pixels
-        inner = [c[~_on_frame(c, h, w)] for c in outlines]
+        inner = [c[~on_image_frame(c, w, h)] for c in outlines]
         seeds = outline_mask(inner, h, w, masks.device)
         if crop_margin_px is None:
             dmap = distance_map(seeds, method)[:, 0]
@@ -156,13 +156,6 @@ def person_data_from_masks(
         maps.append(torch.nan_to_num(dmap, posinf=float(h + w)))
     flags = None if uncertain is None else [uncertain[:, k] for k in range(n_pose)]
     return PersonData(contours, valid, maps, camera, flags)
-
-
-def _on_frame(pixels: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """(N,) bool: which (N, 2) ``(u, v)`` pixels lie on the image's outermost rows or
-    columns, where the frame cuts a silhouette."""
-    u, v = pixels[:, 0], pixels[:, 1]
-    return (u <= 0) | (u >= width - 1) | (v <= 0) | (v >= height - 1)
 
 
 def _cropped_distance_map(

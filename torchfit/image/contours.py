@@ -15,7 +15,13 @@ import torch
 
 from torchfit.errors import ShapeError, check_shape
 
-__all__ = ["trace_outer_contour", "outer_contours", "contour_mask", "outline_mask"]
+__all__ = [
+    "trace_outer_contour",
+    "outer_contours",
+    "contour_mask",
+    "outline_mask",
+    "on_image_frame",
+]
 
 # The 8 neighbours, clockwise on screen (v down): E, SE, S, SW, W, NW, N, NE, as (du, dv).
 _DIRS = ((1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1))
@@ -133,3 +139,11 @@ def outline_mask(
         pts = pts.to(device)
         out[b, 0, pts[:, 1], pts[:, 0]] = True
     return out
+
+
+def on_image_frame(pixels, width: int, height: int):
+    """Which ``(N, 2)`` integer ``(u, v)`` pixels (array or tensor) lie on the image's outermost
+    rows or columns: where the frame cuts a silhouette, an outline there is the picture's edge,
+    not the silhouette's. Returns an ``(N,)`` bool of the same kind."""
+    u, v = pixels[:, 0], pixels[:, 1]
+    return (u <= 0) | (u >= width - 1) | (v <= 0) | (v >= height - 1)

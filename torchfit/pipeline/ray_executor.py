@@ -95,11 +95,11 @@ def _fit_task(
     from torchfit.body.model import BodyModel
     from torchfit.fit.contour_pool import set_contour_workers, start_contour_workers
     from torchfit.pipeline.run import fit_subjects
-    from torchfit.pipeline.runtime import contour_workers, torch_dtype
+    from torchfit.pipeline.runtime import contour_workers_for, torch_dtype
 
     torch.set_num_threads(threads)
     # the task's CPUs: its fit's own and, on a GPU, the rest for the contour choice
-    set_contour_workers(contour_workers(config.run, cores=threads))
+    set_contour_workers(contour_workers_for(config.run, cores=threads))
     start_contour_workers()
     key = (config.model.template, config.run.device, config.run.dtype)
     if key not in _MODELS:

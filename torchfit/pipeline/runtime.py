@@ -12,7 +12,7 @@ from torchfit.errors import ConfigError
 from torchfit.fit.contour_pool import set_contour_workers, start_contour_workers
 from torchfit.solver import keep_heap
 
-__all__ = ["apply_runtime", "torch_dtype", "cpu_count", "local_threads", "contour_workers"]
+__all__ = ["apply_runtime", "torch_dtype", "cpu_count", "local_threads", "contour_workers_for"]
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +42,7 @@ def local_threads(run: RunConfig, cores: int | None = None) -> int:
     return min(threads, int(omp)) if omp.isdigit() and int(omp) > 0 else threads
 
 
-def contour_workers(run: RunConfig, cores: int | None = None) -> int:
+def contour_workers_for(run: RunConfig, cores: int | None = None) -> int:
     """The contour choice's worker processes: ``run.contour_workers``; else none on the CPU
     and, on a GPU, the CPUs beside the fit's own (``cores - 1``)."""
     if run.contour_workers is not None:
@@ -54,7 +54,7 @@ def contour_workers(run: RunConfig, cores: int | None = None) -> int:
 
 def apply_runtime(run: RunConfig) -> None:
     """Set the torch thread count (:func:`local_threads`) and start the contour choice's
-    worker processes (:func:`contour_workers`; a local run's), check the device and set
+    worker processes (:func:`contour_workers_for`; a local run's), check the device and set
     glibc's heap policy as ``run`` asks.
 
     Raises:
@@ -68,7 +68,7 @@ def apply_runtime(run: RunConfig) -> None:
     if device.type == "cuda" and run.executor == "local" and not torch.cuda.is_available():
         raise ConfigError(f"run.device: {run.device!r} but torch sees no CUDA device here")
     # with Ray the fits run in the tasks, which set their own
-    set_contour_workers(contour_workers(run) if run.executor == "local" else 0)
+    set_contour_workers(contour_workers_for(run) if run.executor == "local" else 0)
     start_contour_workers()  # they start while the subjects are read and segmented
     if run.keep_heap and not keep_heap():
         log.warning("run.keep_heap: the C library is not glibc; the setting has no effect")
