@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from torchfit.errors import ConfigError
+from torchfit.fit.bends import BendOptions
 from torchfit.fit.prior import PriorOptions
 from torchfit.fit.problem import FitOptions
 from torchfit.fit.stages import StageOptions
@@ -224,6 +225,8 @@ class FitConfig(FitOptions):
             ``poor_fit`` (check its overlays).
         prior: the population prior over the log scales and the weight of a known height
             (:class:`torchfit.fit.prior.PriorOptions`; ``subject.yaml`` gives the facts).
+        bends: the bent-joint marks (:class:`torchfit.fit.bends.BendOptions`): the flexed
+            knee of posture 3 placed by the axes of the thigh and the shank.
     """
 
     stages: tuple[StageOptions, ...] = field(default_factory=_default_stages)
@@ -232,6 +235,7 @@ class FitConfig(FitOptions):
     batch_size: int = 4
     max_contour_rms_px: float = 15.0
     prior: PriorOptions = field(default_factory=PriorOptions)
+    bends: BendOptions = field(default_factory=BendOptions)
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchfit.body.postures import POSTURES
 from torchfit.errors import ConfigError
 
 __all__ = [
@@ -53,11 +54,14 @@ class JointBounds:
         translation_max_m: the floor translation interval, each axis, metres.
         yaw_max_deg: the yaw interval around the nominal view, degrees.
         tilt_max_deg: the roll / pitch interval, degrees.
+        side_roll_max_deg: the roll interval in the side views (postures 3 and 6), degrees
+            (``None``: ``tilt_max_deg``).
     """
 
     translation_max_m: float = 0.15
     yaw_max_deg: float = 15.0
     tilt_max_deg: float = 5.0
+    side_roll_max_deg: float | None = None
 
 
 @dataclass(frozen=True)
@@ -148,8 +152,11 @@ class ParamLayout:
             upper += [float(joint_upper[d]) for d in dofs]
             init += [float(nominal[j][d]) for d in dofs]
             names += [f"pose{j}:{r}" for r in ROOT_NAMES]
-            lower += [-t_max, -t_max, -yaw_max, -tilt_max, -tilt_max]
-            upper += [t_max, t_max, yaw_max, tilt_max, tilt_max]
+            roll_max = tilt_max
+            if bounds.side_roll_max_deg is not None and POSTURES[j - 1].turn_deg != 0:
+                roll_max = math.radians(bounds.side_roll_max_deg)
+            lower += [-t_max, -t_max, -yaw_max, -roll_max, -tilt_max]
+            upper += [t_max, t_max, yaw_max, roll_max, tilt_max]
             init += [0.0] * len(ROOT_NAMES)
         self.names: tuple[str, ...] = tuple(names)
         self.num_scale_params = 3 * g
@@ -239,10 +246,12 @@ class ParamLayout:
         num_prior: int = 0,
         num_facts: int = 0,
         num_pose_prior: int = 0,
+        num_marks: int = 0,
     ) -> ResidualLayout:
         """The residual layout for padded person contour lengths ``C_j`` (``poses`` order),
-        with ``num_prior`` prior entries, ``num_facts`` known-fact entries and
-        ``num_pose_prior`` posture-prior entries after e_B."""
+        with ``num_prior`` prior entries, ``num_facts`` known-fact entries,
+        ``num_pose_prior`` posture-prior entries and ``num_marks`` joint-mark entries after
+        e_B."""
         return ResidualLayout(
             self.poses,
             tuple(contour_lengths),
@@ -250,6 +259,7 @@ class ParamLayout:
             num_prior,
             num_facts,
             num_pose_prior,
+            num_marks,
         )
 
 
@@ -264,6 +274,7 @@ class ResidualLayout:
         num_prior: number of prior entries e_S (after e_B).
         num_facts: number of known-fact entries e_H (after e_S).
         num_pose_prior: number of posture-prior entries e_A (after e_H).
+        num_marks: number of joint-mark entries e_J (after e_A; two per marked joint).
     """
 
     poses: tuple[int, ...]
@@ -272,6 +283,7 @@ class ResidualLayout:
     num_prior: int = 0
     num_facts: int = 0
     num_pose_prior: int = 0
+    num_marks: int = 0
 
     def block(self, j: int) -> slice:
         """Columns of posture j's ``[e_P..., e_M]``."""
@@ -310,9 +322,14 @@ class ResidualLayout:
         return slice(self.facts.stop, self.facts.stop + self.num_pose_prior)
 
     @property
+    def marks(self) -> slice:
+        """Columns of e_J (empty without joint marks)."""
+        return slice(self.pose_prior.stop, self.pose_prior.stop + self.num_marks)
+
+    @property
     def size(self) -> int:
         """M, the width of a residual row."""
-        return self.pose_prior.stop
+        return self.marks.stop
 
     def per_pose_quality(self, r: torch.Tensor) -> dict[int, tuple[float, float]]:
         """Posture -> (RMS of e_P, e_M) in pixels for one residual row ``r`` (M,)."""

@@ -131,12 +131,15 @@ class ContourSelection:
         silhouettes: the B rendered model silhouettes, packed (a bounding box and its bits:
             a full (H, W) mask per image is 415 KB at 720x576, gigabytes for a large batch);
             :meth:`mask` unpacks one (for overlays and tests).
+        marks: optional (B, L, 3) pixel targets ``(u, v, valid)`` of the posture's marked
+            joints, made with the choice (:class:`torchfit.fit.bends.BendFit`).
     """
 
     samples: torch.Tensor
     sample_valid: torch.Tensor
     nearest: torch.Tensor
     silhouettes: list[tuple]
+    marks: torch.Tensor | None = None
 
     def mask(self, i: int) -> np.ndarray:
         """The (H, W) uint8 silhouette of image ``i``: 255 inside, 0 outside."""
@@ -146,13 +149,19 @@ class ContourSelection:
         """The same choice for every row of a batch folded ``repeats`` times (row b*r + i)."""
         rep = lambda x: x.repeat_interleave(repeats, dim=0)  # noqa: E731
         sil = [m for m in self.silhouettes for _ in range(repeats)]
-        return ContourSelection(rep(self.samples), rep(self.sample_valid), rep(self.nearest), sil)
+        marks = None if self.marks is None else rep(self.marks)
+        return ContourSelection(
+            rep(self.samples), rep(self.sample_valid), rep(self.nearest), sil, marks
+        )
 
     def take(self, rows: torch.Tensor) -> ContourSelection:
         """The choice of the images ``rows`` (N,), in that order (padding kept)."""
         at = rows.to(self.samples.device)
         sil = [self.silhouettes[i] for i in rows.tolist()]
-        return ContourSelection(self.samples[at], self.sample_valid[at], self.nearest[at], sil)
+        marks = None if self.marks is None else self.marks[at]
+        return ContourSelection(
+            self.samples[at], self.sample_valid[at], self.nearest[at], sil, marks
+        )
 
     def put(self, rows: torch.Tensor, other: ContourSelection) -> ContourSelection:
         """This choice with the images ``rows`` (N,) replaced by ``other``'s N images.
@@ -165,11 +174,18 @@ class ContourSelection:
         sil = list(self.silhouettes)
         for i, packed in zip(rows.tolist(), other.silhouettes, strict=True):
             sil[i] = packed
+        marks = self.marks
+        if other.marks is not None:
+            base = self.marks if self.marks is not None else other.marks.new_zeros(
+                self.samples.shape[0], *other.marks.shape[1:]
+            )
+            marks = base.index_copy(0, at, other.marks)
         return ContourSelection(
             _widen(self.samples, width).index_copy(0, at, _widen(other.samples, width)),
             _widen(self.sample_valid, width).index_copy(0, at, _widen(other.sample_valid, width)),
             self.nearest.index_copy(0, at, other.nearest),
             sil,
+            marks,
         )
 
 

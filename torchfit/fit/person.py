@@ -33,6 +33,8 @@ class PersonData:
             trusted (those the segmentation's shadow test removed). A model contour point on
             such a pixel does not count in e_M, and ``valid`` already excludes the person
             contour pixels next to them (see :func:`person_data_from_masks`).
+        silhouettes: optional posture index -> (B, H, W) bool silhouettes, for the postures
+            whose bent joints the fit marks (:class:`torchfit.fit.bends.BendFit`).
     """
 
     contours: list[torch.Tensor]
@@ -40,6 +42,7 @@ class PersonData:
     distance_maps: list[torch.Tensor]
     camera: Camera
     uncertain: list[torch.Tensor] | None = None
+    silhouettes: dict[int, torch.Tensor] | None = None
 
     @property
     def batch_size(self) -> int:
@@ -61,6 +64,9 @@ class PersonData:
             [d.to(device) for d in self.distance_maps],
             self.camera.to(device=device),
             None if self.uncertain is None else [u.to(device) for u in self.uncertain],
+            None
+            if self.silhouettes is None
+            else {k: m.to(device) for k, m in self.silhouettes.items()},
         )
 
     def subset(self, index: list[int] | torch.Tensor) -> PersonData:
@@ -72,6 +78,9 @@ class PersonData:
             [d[idx] for d in self.distance_maps],
             self.camera[idx],
             None if self.uncertain is None else [u[idx] for u in self.uncertain],
+            None
+            if self.silhouettes is None
+            else {k: m[idx.to(m.device)] for k, m in self.silhouettes.items()},
         )
 
 

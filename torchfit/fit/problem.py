@@ -51,6 +51,11 @@ class FitOptions:
         translation_max_m: floor translation interval, each axis, metres.
         yaw_max_deg: yaw interval around the nominal view, degrees.
         tilt_max_deg: roll / pitch interval, degrees.
+        side_roll_max_deg: roll interval in the side views (postures 3 and 6), degrees;
+            ``None``: ``tilt_max_deg``. Seen from the side, a roll leans the body towards or
+            away from the camera: the silhouette hardly shows it, and a fit left free there
+            lifts one hip and lowers the other (a longer thigh on the flexed leg of posture 3,
+            a shorter shank on the standing one).
         barrier_weight: e_B slope outside an interval.
         samples_per_edge: model contour candidates per mesh edge.
         contour_tolerance_px: a sample within this of the rendered contour is on it.
@@ -74,6 +79,7 @@ class FitOptions:
     translation_max_m: float = 0.15
     yaw_max_deg: float = 15.0
     tilt_max_deg: float = 5.0
+    side_roll_max_deg: float | None = None
     barrier_weight: float = 100.0
     samples_per_edge: int = 4
     contour_tolerance_px: float = 1.0
@@ -88,6 +94,11 @@ class FitOptions:
         poses = list(self.poses)
         if not poses or len(set(poses)) != len(poses) or not set(poses) <= set(range(1, 7)):
             raise ConfigError(f"fit.poses: expected distinct postures from 1..6, got {poses}")
+        if self.side_roll_max_deg is not None and not self.side_roll_max_deg >= 0:
+            raise ConfigError(
+                f"fit.side_roll_max_deg: expected a number >= 0 or null, got "
+                f"{self.side_roll_max_deg!r}"
+            )
         if not 0 < self.pose_outlier_weight <= 1:
             raise ConfigError(
                 f"fit.pose_outlier_weight: expected a number in (0, 1], got "
@@ -131,7 +142,12 @@ class SilhouetteFit:
             nominal_angles(model, self.poses),
             free,
             scale_bounds,
-            JointBounds(options.translation_max_m, options.yaw_max_deg, options.tilt_max_deg),
+            JointBounds(
+                options.translation_max_m,
+                options.yaw_max_deg,
+                options.tilt_max_deg,
+                options.side_roll_max_deg,
+            ),
         )
         self.layout = layout
         self.residual_layout = layout.residual_layout(person.contour_lengths)

@@ -15,7 +15,11 @@ ratio to the height among the 6068 soldiers of ANSUR II. Two checks read it:
   percentiles, in the model's own definitions. A ``same`` row is read as it is; a ``template``
   row relative to its geometric mean, with the template's own ratio as the population's mean
   (the convention of the prior, ``torchfit.fit.prior``). A fit outside it is ``poor_fit``: its
-  measurements are reported, and the message names the ratio and the percentile.
+  measurements are reported, and the message names the ratio and the percentile. A
+  proportion the subject's own images show is not held to this range, only to the hard
+  limits: the thigh and the lower leg where the fit placed the knee from its limbs in posture
+  3 (:mod:`torchfit.fit.bends`), since bodies outside the range exist and there the
+  images, not the population, say so.
 """
 
 from __future__ import annotations

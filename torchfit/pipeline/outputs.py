@@ -150,6 +150,7 @@ def write_overlays(
     selections: dict[int, ContourSelection],
     i: int,
     tb=None,
+    bends: dict | None = None,
 ) -> None:
     """overlay_pose<j>.png of subject ``i`` for every fitted posture (and to TensorBoard).
 
@@ -160,8 +161,11 @@ def write_overlays(
         selections: the final model-contour choice per posture.
         i: the subject's row in the batch.
         tb: optional :class:`torchfit.pipeline.tensorboard.TensorBoardCallback`.
+        bends: optional params.json record of the bent-joint marks
+            (:meth:`torchfit.fit.bends.BendFit.mark_record`), drawn on their postures.
     """
     name = prepared.subject.name
+    bends = bends or {}
     for j in fit.poses:
         image = prepared.float_images([j - 1])[0].permute(1, 2, 0).numpy()
         overlay = fit_overlay(
@@ -170,6 +174,7 @@ def write_overlays(
             selections[j].mask(i),
             f"{name} pose{j} {POSTURES[j - 1].name}",
             prepared.shadow[j - 1].numpy() if fit.person.uncertain is not None else None,
+            [(m["target_px"], m["model_px"]) for m in bends.get(f"pose{j}", {}).values()],
         )
         write_image(folder / f"overlay_pose{j}.png", overlay)
         if tb is not None:

@@ -18,6 +18,7 @@ import torch
 from torchfit.camera import Camera, floor_points
 from torchfit.config.schema import Config
 from torchfit.errors import DataError, SegmentationError
+from torchfit.fit.bends import parse_bends
 from torchfit.fit.person import PersonData, person_data_from_masks
 from torchfit.image.background import BackgroundModel, fit_background
 from torchfit.image.chroma import ChromaKeyOptions, chroma_key, despill, key_colour
@@ -349,9 +350,10 @@ def person_data(
     dtype: torch.dtype,
 ) -> PersonData:
     """The person side of the fit from segmented postures (B, J, H, W), as ``config`` says
-    (distance transform, contour stride, shadow pixels as uncertain)."""
+    (distance transform, contour stride, shadow pixels as uncertain; the silhouettes of the
+    postures with bent-joint marks where ``fit.bends`` weighs them)."""
     use_shadow = config.fit.ignore_shadow and config.segmentation.shadow_test
-    return person_data_from_masks(
+    person = person_data_from_masks(
         masks,
         cameras,
         config.segmentation.distance,
@@ -360,3 +362,8 @@ def person_data(
         shadow if use_shadow else None,
         config.fit.shadow_margin_px,
     )
+    if config.fit.bends.weight > 0:
+        poses = list(config.fit.poses)
+        marked = {b.posture for b in parse_bends(config.fit.bends.joints)} & set(poses)
+        person.silhouettes = {poses.index(j): masks[:, poses.index(j)] for j in sorted(marked)}
+    return person

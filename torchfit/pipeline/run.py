@@ -30,6 +30,7 @@ from torchfit.camera import stack_cameras
 from torchfit.config.loader import config_to_yaml
 from torchfit.config.schema import Config
 from torchfit.errors import ConfigError, DataError, OutputError, TorchfitError
+from torchfit.fit.bends import BendFit
 from torchfit.fit.prior import KnownFacts, PriorFit, load_prior, posture_prior_dofs
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.io.dataset import Subject, load_dataset
@@ -93,15 +94,20 @@ def build_problem(model: BodyModel, person, config: Config, facts: list[dict]) -
         facts: one ``subject.yaml`` dict per subject (empty where none).
 
     Returns:
-        a :class:`torchfit.fit.SilhouetteFit`, or a :class:`torchfit.fit.prior.PriorFit`
-        when the prior is weighed or some subject has facts.
+        a :class:`torchfit.fit.SilhouetteFit`; a :class:`torchfit.fit.prior.PriorFit`
+        when the prior is weighed or some subject has facts; a
+        :class:`torchfit.fit.bends.BendFit` when the bent-joint marks are weighed (then
+        ``person.silhouettes`` must hold the marked postures' silhouettes).
     """
     bounds = (config.model.scale_min, config.model.scale_max)
     options = config.fit.prior
-    if options.weight == 0 and options.pose_weight == 0 and not any(facts):
+    bends = config.fit.bends
+    if options.weight == 0 and options.pose_weight == 0 and bends.weight == 0 and not any(facts):
         return SilhouetteFit(model, person, config.fit, bounds)
     prior = load_prior(options.name) if options.weight > 0 else None
     known = [KnownFacts(**f) for f in facts]
+    if bends.weight > 0:
+        return BendFit(model, person, config.fit, bounds, prior, options, known, bends)
     return PriorFit(model, person, config.fit, bounds, prior, options, known)
 
 
@@ -192,8 +198,9 @@ def fit_batch(
         }
         status, message = judge(records[i], quality, config.fit.max_contour_rms_px, prep.flags)
         measurements = {k: float(v[i]) for k, v in measures.items()}
+        bends = fit.mark_record(x, selections, i) if isinstance(fit, BendFit) else None
         if config.output.overlays:
-            write_overlays(folder, prep, fit, selections, i, tb)
+            write_overlays(folder, prep, fit, selections, i, tb, bends)
         if tb is not None:
             for pose, values in quality.items():
                 for key, value in values.items():
@@ -213,6 +220,8 @@ def fit_batch(
             seconds + prep.seconds,
         )
         document.update(facts_record(fit, i))
+        if bends is not None:
+            document["bends"] = bends
         document["segmentation_notes"] = prep.notes + prep.flags
         write_json(folder / "params.json", document)
         write_json(folder / "measurements.json", {**measurements, "status": str(status)})

@@ -19,6 +19,7 @@ import torch
 
 from torchfit.body.measure import measure_model
 from torchfit.config.schema import Config
+from torchfit.fit.bends import BendFit
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.fit.stages import pose_contour_rms, pose_outliers, solve_stage
 from torchfit.pipeline.checks import (
@@ -272,12 +273,17 @@ def _final_flags(
     free = [c for c in cols if float(fit.lower[c]) < float(fit.upper[c])]
     names = [fit.layout.names[c].removeprefix("scale:") for c in free]
     ranges = population_ranges(_template_ratios(fit))
+    selections = fit.select(x) if isinstance(fit, BendFit) else None
     out = []
     for i in range(x.shape[0]):
         values = {k: float(v[i]) for k, v in measures.items()}
         flags = [downweighted[i][j] for j in sorted(downweighted[i])]
         hard = proportion_flags(values)
-        flags += hard or [o.describe() for o in proportion_outliers(values, ranges)]
+        # a proportion the images show (a knee placed by its limbs) is not judged by the
+        # population's percentiles, only by the hard limits
+        shown = fit.shown(fit.mark_record(x, selections, i)) if selections else set()
+        outliers = [o for o in proportion_outliers(values, ranges) if o.key not in shown]
+        flags += hard or [o.describe() for o in outliers]
         flags += bound_flags([float(x[i, c]) for c in free], names, fit.scale_bounds)
         offsets = {j: fit.layout.root_offsets(x[i], j) for j in fit.poses}
         flags += root_bound_flags(offsets, fit.options.translation_max_m, fit.options.yaw_max_deg)

@@ -1,0 +1,393 @@
+"""Bent joints marked on the person's limbs: the flexed knee of posture 3 placed by its limbs.
+
+The contour terms place a bent joint only as well as the rigid template's flesh at the bend
+matches the person's: in posture 3 the fitted knee sat about 5 px (2 cm) below the true one
+on the development sets, and the leg's split between thigh and shank followed the template's
+instead of the person's (``benchmarks/RESULTS.md``, "The knee from its limbs").
+
+The limbs on either side of a bent joint are straight bands on the silhouette, and the axes of
+the two bands cross near the joint (:func:`torchfit.image.bends.bend_point`). Not at the joint
+centre itself: a calf bulges behind the shank's bone. The model, drawn at its current pose,
+shows the same crossing on its own silhouette, so the person's joint is where the model's
+joint would be moved by the difference of the two crossings:
+
+    target = π(joint) + bend(person silhouette) − bend(model silhouette)
+
+with both crossings taken along the model's own projected joints. The target is made with
+each contour choice (and like it, outside the derivatives), and the fit adds
+
+    e_J = weight * (π(joint) − target)
+
+two entries (u, v) per marked joint, in pixels times ``weight``; a joint whose crossing is not
+found on either silhouette, or moves more than ``max_shift_px``, has e_J = 0 until the next
+choice. Pixels ``(u, v)``, ``v`` down, as :mod:`torchfit.image.contours`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.autograd.forward_ad as fwad
+
+from torchfit.body.model import BodyModel
+from torchfit.camera import project_with_jacobian
+from torchfit.errors import ConfigError, DataError
+from torchfit.fit.model_contour import ContourSelection
+from torchfit.fit.person import PersonData
+from torchfit.fit.prior import KnownFacts, PriorFit, PriorOptions, ScalePrior
+from torchfit.fit.problem import FitOptions
+from torchfit.image.bends import bend_point
+
+__all__ = ["BendOptions", "Bend", "SHOWN_BY", "parse_bends", "bend_target", "BendFit"]
+
+#: The measurements a marked joint's place shows (by the joint's name without its side).
+SHOWN_BY: dict[str, tuple[str, ...]] = {
+    "knee": ("thigh_m", "lower_leg_m"),
+    "elbow": ("upper_arm_m", "forearm_m"),
+}
+
+
+@dataclass(frozen=True)
+class BendOptions:
+    """The bent-joint marks of the fit.
+
+    Attributes:
+        weight: the weight of e_J (0: no marks). One pixel of a joint's offset from its
+            target costs ``weight²``, as a posture whose contour is ``weight`` pixels off on
+            average (e_M).
+        joints: the marked joints, ``"pose<j>:<proximal>,<joint>,<distal>"`` with
+            design.md's joint names: the joint, bent in posture j, between the limbs to its
+            two neighbours.
+        max_shift_px: a crossing that moves the joint further than this is not trusted
+            (a silhouette that lost part of a limb).
+        min_angle_deg: the smallest bend between the two limbs' axes that marks the joint.
+        shown_px: a fitted joint within this of its mark shows the measurements it splits
+            (:data:`SHOWN_BY`: the knee the thigh and the lower leg), and the judge takes
+            their proportions from the images even outside the population's 1st–99th
+            percentiles (``torchfit.pipeline.checks``).
+    """
+
+    weight: float = 0.0
+    joints: tuple[str, ...] = ("pose3:l_hip,l_knee,l_ankle",)
+    max_shift_px: float = 15.0
+    min_angle_deg: float = 30.0
+    shown_px: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.weight) and self.weight >= 0):
+            raise ConfigError(f"fit.bends.weight: expected a number >= 0, got {self.weight!r}")
+        if not self.max_shift_px > 0:
+            raise ConfigError(
+                f"fit.bends.max_shift_px: expected a number > 0, got {self.max_shift_px!r}"
+            )
+        if not 0 < self.min_angle_deg < 90:
+            raise ConfigError(
+                f"fit.bends.min_angle_deg: expected a number in (0, 90), got {self.min_angle_deg!r}"
+            )
+        if not self.shown_px >= 0:
+            raise ConfigError(f"fit.bends.shown_px: expected a number >= 0, got {self.shown_px!r}")
+        parse_bends(self.joints)
+
+
+@dataclass(frozen=True)
+class Bend:
+    """One marked joint: ``joint``, bent in ``posture``, between ``proximal`` and ``distal``."""
+
+    posture: int
+    proximal: str
+    joint: str
+    distal: str
+
+    @property
+    def names(self) -> tuple[str, str, str]:
+        """The three joints, proximal first."""
+        return (self.proximal, self.joint, self.distal)
+
+
+def parse_bends(specs: Sequence[str]) -> list[Bend]:
+    """``["pose3:l_hip,l_knee,l_ankle", ...]`` -> :class:`Bend` list (ConfigError if
+    malformed)."""
+    out = []
+    for spec in specs:
+        pose, _, names = str(spec).partition(":")
+        parts = [n.strip() for n in names.split(",")]
+        number = pose.strip().removeprefix("pose")
+        if not number.isdigit() or not 1 <= int(number) <= 6 or len(parts) != 3 or "" in parts:
+            raise ConfigError(
+                f"fit.bends.joints: expected 'pose<1-6>:<proximal>,<joint>,<distal>', got {spec!r}"
+            )
+        out.append(Bend(int(number), *parts))
+    return out
+
+
+def bend_target(
+    person: np.ndarray,
+    model: np.ndarray,
+    joints: np.ndarray,
+    max_shift_px: float,
+    min_angle_deg: float,
+) -> np.ndarray | None:
+    """Where the person's joint is, from the two silhouettes' limb crossings.
+
+    Args:
+        person, model: (H, W) bool silhouettes of the person and of the model as it stands.
+        joints: (3, 2) the model's projected proximal joint, joint and distal joint, pixels.
+        max_shift_px, min_angle_deg: as :class:`BendOptions`.
+
+    Returns:
+        (2,) pixel target of the joint, or ``None`` where a crossing is not found or the
+        shift exceeds ``max_shift_px``.
+    """
+    on_person = bend_point(person, *joints, min_angle_deg=min_angle_deg)
+    on_model = bend_point(model, *joints, min_angle_deg=min_angle_deg)
+    if on_person is None or on_model is None:
+        return None
+    shift = on_person - on_model
+    if float(np.hypot(*shift)) > max_shift_px:
+        return None
+    return joints[1] + shift
+
+
+class BendFit(PriorFit):
+    """:class:`~torchfit.fit.prior.PriorFit` plus e_J, the bent-joint marks, after e_A.
+
+    Args:
+        model, person, options, scale_bounds, prior, prior_options, facts: as
+            :class:`~torchfit.fit.prior.PriorFit`; ``person.silhouettes`` must hold the
+            silhouettes of every posture with a marked joint.
+        bends: the marks and their weight.
+    """
+
+    def __init__(
+        self,
+        model: BodyModel,
+        person: PersonData,
+        options: FitOptions | None = None,
+        scale_bounds: tuple[float, float] = (0.4, 1.9),
+        prior: ScalePrior | None = None,
+        prior_options: PriorOptions | None = None,
+        facts: Sequence[KnownFacts] | None = None,
+        bends: BendOptions | None = None,
+    ) -> None:
+        super().__init__(model, person, options, scale_bounds, prior, prior_options, facts)
+        self.bend_options = bends = bends or BendOptions()
+        known = model.template.joints
+        marks = [b for b in parse_bends(bends.joints) if b.posture in self.poses]
+        for b in marks:
+            unknown = [n for n in b.names if n not in known]
+            if unknown:
+                raise ConfigError(
+                    f"fit.bends.joints: {unknown} not joints of template "
+                    f"{model.template.name!r} (joints: {sorted(known)})"
+                )
+        #: posture -> its marks, in ``poses`` order
+        self.marks = {j: [b for b in marks if b.posture == j] for j in self.poses}
+        self.marks = {j: m for j, m in self.marks.items() if m}
+        for j in self.marks:
+            silhouettes = person.silhouettes or {}
+            if self.poses.index(j) not in silhouettes:
+                raise DataError(f"bent-joint marks in pose{j} need the person's silhouettes")
+        self._segments = {
+            j: torch.tensor(
+                [[known[n] for n in b.names] for b in m], dtype=torch.long, device=model.device
+            )
+            for j, m in self.marks.items()
+        }
+        rl = self.residual_layout
+        self.residual_layout = self.layout.residual_layout(
+            person.contour_lengths,
+            rl.num_prior,
+            rl.num_facts,
+            rl.num_pose_prior,
+            2 * sum(len(m) for m in self.marks.values()),
+        )
+
+    def subset(self, index: list[int]) -> BendFit:
+        """The same problem for a subset of the subjects."""
+        out = BendFit(
+            self.model,
+            self.person.subset(index),
+            self.options,
+            self.scale_bounds,
+            self.prior,
+            self.prior_options,
+            [self.facts[i] for i in index],
+            self.bend_options,
+        )
+        out.pose_weights = self.pose_weights[index].clone()
+        return out
+
+    # ------------------------------------------------------------------------------------
+    def _mark_rows(self) -> dict[int, slice]:
+        """posture -> its e_J columns."""
+        out, at = {}, self.residual_layout.marks.start
+        for j, m in self.marks.items():
+            out[j] = slice(at, at + 2 * len(m))
+            at += 2 * len(m)
+        return out
+
+    def joint_pixels(self, full: torch.Tensor, j: int, rows: torch.Tensor) -> torch.Tensor:
+        """(N, L, 3, 2) pixels of the proximal joint, joint and distal joint of posture j's
+        L marks, for parameter rows ``full`` (N, P) of the subjects ``rows``."""
+        empty = torch.zeros(0, dtype=torch.long, device=full.device)
+        origins = self.pose_world(full, j, rows, empty)[1]
+        seg = self._segments[j]
+        points = origins[:, seg.flatten()]  # (N, L*3, 3)
+        return self.project(points, rows).reshape(full.shape[0], *seg.shape, 2)
+
+    @torch.no_grad()
+    def select(
+        self, full: torch.Tensor, rows: torch.Tensor | None = None
+    ) -> dict[int, ContourSelection]:
+        """:meth:`SilhouetteFit.select`, with each marked posture's joint targets
+        (``ContourSelection.marks``)."""
+        if rows is None:
+            rows = torch.arange(full.shape[0], device=full.device)
+        chosen = super().select(full, rows)
+        opts = self.bend_options
+        for j, marks in self.marks.items():
+            sel = chosen[j]
+            joints = self.joint_pixels(full, j, rows).cpu().numpy()
+            person = self.person.silhouettes[self.poses.index(j)]
+            out = np.zeros((full.shape[0], len(marks), 3))
+            for i, subject in enumerate(rows.tolist()):
+                mask = person[subject].cpu().numpy()
+                model = sel.mask(i) > 0
+                for m in range(len(marks)):
+                    target = bend_target(
+                        mask, model, joints[i, m], opts.max_shift_px, opts.min_angle_deg
+                    )
+                    if target is not None:
+                        out[i, m] = (target[0], target[1], 1.0)
+            sel.marks = torch.as_tensor(out, **self.kw)
+        return chosen
+
+    def _marks_at(self, sel: ContourSelection, n: int, count: int) -> torch.Tensor:
+        if sel.marks is None:
+            return torch.zeros(n, count, 3, **self.kw)
+        return sel.marks
+
+    def mark_residual(
+        self, full: torch.Tensor, rows: torch.Tensor, selections: dict[int, ContourSelection]
+    ) -> torch.Tensor:
+        """(N, 2 L) e_J of parameter rows ``full`` (N, P) with the choice ``selections``."""
+        parts = [full.new_zeros(full.shape[0], 0)]
+        for j, marks in self.marks.items():
+            target = self._marks_at(selections[j], full.shape[0], len(marks))
+            pixels = self.joint_pixels(full, j, rows)[:, :, 1]
+            r = self.bend_options.weight * (pixels - target[..., :2]) * target[..., 2:]
+            parts.append(r.reshape(full.shape[0], -1))
+        return torch.cat(parts, 1)
+
+    def residual(self, full, selections=None, rows=None) -> torch.Tensor:
+        """(N, M) residuals: :meth:`PriorFit.residual`, then e_J."""
+        if rows is None:
+            rows = torch.arange(full.shape[0], device=full.device)
+        selections = selections or self.select(full, rows)
+        base = super().residual(full, selections, rows)
+        return torch.cat([base, self.mark_residual(full, rows, selections)], 1)
+
+    def loss_units(self) -> torch.Tensor:
+        """As :meth:`PriorFit.loss_units`; e_J is least squares."""
+        inf = torch.full((self.batch, self.residual_layout.num_marks), torch.inf, **self.kw)
+        return torch.cat([super().loss_units(), inf], 1)
+
+    def residual_mask(self) -> torch.Tensor:
+        """As :meth:`PriorFit.residual_mask`; e_J is always valid (zero where unmarked)."""
+        base = super().residual_mask()
+        return torch.cat([base, base.new_ones(self.batch, self.residual_layout.num_marks)], 1)
+
+    def _mark_columns(self, free: torch.Tensor, j: int) -> torch.Tensor:
+        """Positions in ``free`` of the columns posture j depends on (scales, its block)."""
+        sl = self.layout.blocks[j].columns
+        scale = free < self.layout.num_scale_params
+        return (scale | ((free >= sl.start) & (free < sl.stop))).nonzero().flatten()
+
+    def jacobian_blocks(self, free: torch.Tensor) -> list[tuple[slice, torch.Tensor]]:
+        """As :meth:`PriorFit.jacobian_blocks`, with posture j's e_J on the scales and its own
+        parameters."""
+        out = super().jacobian_blocks(free)
+        for j, rows in self._mark_rows().items():
+            out.append((rows, self._mark_columns(free, j)))
+        return out
+
+    def _mark_jacobian(
+        self, full: torch.Tensor, free: torch.Tensor, j: int, rows: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Posture j's marked joints' pixels (N, L, 2), their derivatives (N, L, 2, c) w.r.t.
+        the free columns it depends on, and those columns' positions (c,) in ``free``
+        (forward-mode AD, the tangents folded into the batch)."""
+        at = self._mark_columns(free, j)
+        n, c = full.shape[0], at.numel()
+        seg = self._segments[j][:, 1]
+        tangent = torch.zeros(n * c, full.shape[1], **self.kw)
+        tangent[torch.arange(n * c), free[at].repeat(n)] = 1.0
+        empty = torch.zeros(0, dtype=torch.long, device=full.device)
+        with fwad.dual_level():
+            dual = fwad.make_dual(full.repeat_interleave(c, dim=0), tangent)
+            origins = self.pose_world(dual, j, rows.repeat_interleave(c), empty)[1]
+            primal, tan = fwad.unpack_dual(origins)
+        world = primal[::c, seg]
+        d_world = tan[:, seg].reshape(n, c, -1, 3).permute(0, 2, 3, 1)  # (N, L, 3, c)
+        pixels, d_pix = project_with_jacobian(world, d_world, self.camera[rows])
+        return pixels, d_pix, at
+
+    def jacobian_and_residual(self, full, free, selections, rows=None):
+        """:meth:`PriorFit.jacobian_and_residual` with the e_J rows filled in."""
+        if rows is None:
+            rows = torch.arange(full.shape[0], device=full.device)
+        jac, base = super().jacobian_and_residual(full, free, selections, rows)
+        parts = [base]
+        w = self.bend_options.weight
+        n = full.shape[0]
+        for j, cols in self._mark_rows().items():
+            target = self._marks_at(selections[j], n, len(self.marks[j]))
+            valid = target[..., 2:]
+            if not self._mark_columns(free, j).numel():
+                pixels = self.joint_pixels(full, j, rows)[:, :, 1]
+                parts.append((w * (pixels - target[..., :2]) * valid).reshape(n, -1))
+                continue
+            pixels, d_pix, at = self._mark_jacobian(full, free, j, rows)
+            parts.append((w * (pixels - target[..., :2]) * valid).reshape(n, -1))
+            jac[:, cols, at] = (w * valid[..., None] * d_pix).reshape(n, -1, at.numel())
+        return jac, torch.cat(parts, 1)
+
+    @torch.no_grad()
+    def mark_record(
+        self, full: torch.Tensor, selections: dict[int, ContourSelection], i: int
+    ) -> dict:
+        """params.json's record of subject row ``i``'s marks at ``full`` (B, P) with the
+        choice ``selections``: per posture and joint, the target pixel (``None`` where the
+        limbs' crossing was not found or not trusted), the model joint's pixel and their
+        distance."""
+        rows = torch.arange(full.shape[0], device=full.device)[i : i + 1]
+        out = {}
+        for j, marks in self.marks.items():
+            pixels = self.joint_pixels(full[i : i + 1], j, rows)[0, :, 1].tolist()
+            target = self._marks_at(selections[j], full.shape[0], len(marks))[i].tolist()
+            record = {}
+            for m, bend in enumerate(marks):
+                found = target[m][2] > 0
+                record[bend.joint] = {
+                    "target_px": [round(v, 2) for v in target[m][:2]] if found else None,
+                    "model_px": [round(v, 2) for v in pixels[m]],
+                    "offset_px": (round(math.dist(target[m][:2], pixels[m]), 2) if found else None),
+                }
+            out[f"pose{j}"] = record
+        return out
+
+    def shown(self, record: dict) -> set[str]:
+        """The measurements a subject's marks show (:data:`SHOWN_BY`), from its
+        :meth:`mark_record`: those of every joint found and fitted within ``shown_px`` of
+        its mark."""
+        out: set[str] = set()
+        for joints in record.values():
+            for joint, mark in joints.items():
+                offset = mark["offset_px"]
+                if offset is not None and offset <= self.bend_options.shown_px:
+                    out.update(SHOWN_BY.get(joint.split("_", 1)[-1], ()))
+        return out
