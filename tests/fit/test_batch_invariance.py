@@ -21,6 +21,7 @@ from torchfit.fit import (
     person_data_from_masks,
     solve_stage,
 )
+from torchfit.fit.bends import BendFit, BendOptions
 from torchfit.fit.prior import PriorFit, PriorOptions, load_prior
 from torchfit.fit.stages import SOLVER_DTYPE
 from torchfit.image import SegmentationOptions, fit_background, segment
@@ -152,3 +153,32 @@ def test_prior_fit_is_batch_invariant(masks, dtype):
     for names in (["a", "b"], ["c", "a"]):
         i = names.index("a")
         torch.testing.assert_close(one_stage(names)[i : i + 1], alone, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_bend_mark_fit_is_batch_invariant(masks, dtype):
+    """With the knee's mark (its target per subject, its Jacobian by forward mode over the
+    batch folded with the tangents) a subject gets the same parameters alone as in a batch."""
+    model = BodyModel("mpeg4_full", dtype=dtype)
+    stage = STAGES[1]
+
+    def one_stage(names):
+        person = person_data_from_masks(
+            torch.stack([masks[n][0] for n in names]),
+            stack_cameras([masks[n][1] for n in names]),
+            dtype=dtype,
+        )
+        person.silhouettes = {POSES.index(3): torch.stack([masks[n][0][1] for n in names])}
+        fit = BendFit(model, person, FitOptions(poses=POSES), bends=BendOptions(weight=1.0))
+        options = LMOptions(max_iter=stage.max_iter, min_diag=1.0)
+        x = solve_stage(fit, fit.initial_params(), stage, options)[0]
+        marks = fit.select(x)[3].marks
+        return x, marks
+
+    alone, alone_marks = one_stage(["a"])
+    assert float(alone_marks[0, 0, 2]) == 1.0  # the knee is marked
+    for names in (["a", "b"], ["c", "a"]):
+        i = names.index("a")
+        x, marks = one_stage(names)
+        torch.testing.assert_close(x[i : i + 1], alone, rtol=0, atol=0)
+        torch.testing.assert_close(marks[i : i + 1], alone_marks, rtol=0, atol=0)
