@@ -131,6 +131,15 @@ def test_prior_residual_of_a_subject_does_not_depend_on_its_batch(masks, dtype):
             torch.testing.assert_close(alone, batch[i : i + 1], rtol=0, atol=0)
 
 
+def _person(masks, names, dtype):
+    """The person data of the subjects ``names``, in that order."""
+    return person_data_from_masks(
+        torch.stack([masks[n][0] for n in names]),
+        stack_cameras([masks[n][1] for n in names]),
+        dtype=dtype,
+    )
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_prior_fit_is_batch_invariant(masks, dtype):
     """With the population prior (its whitening product per subject) a subject gets the same
@@ -140,11 +149,7 @@ def test_prior_fit_is_batch_invariant(masks, dtype):
     stage = STAGES[1]
 
     def one_stage(names):
-        person = person_data_from_masks(
-            torch.stack([masks[n][0] for n in names]),
-            stack_cameras([masks[n][1] for n in names]),
-            dtype=dtype,
-        )
+        person = _person(masks, names, dtype)
         fit = PriorFit(model, person, FitOptions(poses=POSES), prior=prior, prior_options=weight)
         options = LMOptions(max_iter=stage.max_iter, min_diag=1.0)
         return solve_stage(fit, fit.initial_params(), stage, options)[0]
@@ -163,11 +168,7 @@ def test_bend_mark_fit_is_batch_invariant(masks, dtype):
     stage = STAGES[1]
 
     def one_stage(names):
-        person = person_data_from_masks(
-            torch.stack([masks[n][0] for n in names]),
-            stack_cameras([masks[n][1] for n in names]),
-            dtype=dtype,
-        )
+        person = _person(masks, names, dtype)
         person.silhouettes = {POSES.index(3): torch.stack([masks[n][0][1] for n in names])}
         fit = BendFit(model, person, FitOptions(poses=POSES), bends=BendOptions(weight=1.0))
         options = LMOptions(max_iter=stage.max_iter, min_diag=1.0)
