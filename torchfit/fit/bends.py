@@ -197,6 +197,9 @@ class BendFit(PriorFit):
             )
             for j, m in self.marks.items()
         }
+        #: posture -> the parameter columns that can move its marked joints (those of the
+        #: Jacobian's forward mode; the others' derivatives are structurally zero)
+        self._moving = {j: self._moving_columns(j) for j in self.marks}
         rl = self.residual_layout
         self.residual_layout = self.layout.residual_layout(
             person.contour_lengths,
@@ -315,13 +318,45 @@ class BendFit(PriorFit):
             out.append((rows, self._mark_columns(free, j)))
         return out
 
+    def _moving_columns(self, j: int) -> torch.Tensor:
+        """(C,) the columns that can move posture j's marked joints standing on the floor: the
+        scales of the segments above each joint and of the soles' segments and theirs (a
+        joint centre moves with its ancestors' scales, a sole with its own too), the DOFs that
+        move any of those segments, and the posture's root."""
+        model, layout = self.model, self.layout
+        parents = model.template.parents
+        group = model.template.segment_group.tolist()
+        soles = [int(model._vertex_segment[v]) for v in self.poser.soles]
+
+        def above(s: int) -> list[int]:
+            out, s = [], int(parents[s])
+            while s >= 0:
+                out.append(s)
+                s = int(parents[s])
+            return out
+
+        joints = [int(s) for s in self._segments[j][:, 1].tolist()]
+        segments = set(soles) | {a for s in joints + soles for a in above(s)}
+        columns = {
+            layout.scale_column(model.template.scale_groups[group[s]], axis)
+            for s in segments
+            for axis in "xyz"
+        }
+        block = layout.blocks[j]
+        moves = model.chain.dof_moves[:, sorted(set(joints) | segments | set(soles))].any(1)
+        for k, dof in enumerate(block.dofs):
+            if bool(moves[dof]):
+                columns.add(block.joints.start + k)
+        columns.update(range(block.root.start, block.root.stop))
+        return torch.tensor(sorted(c for c in columns if c is not None), device=model.device)
+
     def _mark_jacobian(
         self, full: torch.Tensor, free: torch.Tensor, j: int, rows: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Posture j's marked joints' pixels (N, L, 2), their derivatives (N, L, 2, c) w.r.t.
-        the free columns it depends on, and those columns' positions (c,) in ``free``
+        the free columns that can move them, and those columns' positions (c,) in ``free``
         (forward-mode AD, the tangents folded into the batch)."""
-        at = self._mark_columns(free, j)
+        at = torch.isin(free, self._moving[j]).nonzero().flatten()
         n, c = full.shape[0], at.numel()
         seg = self._segments[j][:, 1]
         tangent = torch.zeros(n * c, full.shape[1], **self.kw)
@@ -347,7 +382,7 @@ class BendFit(PriorFit):
         for j, cols in self._mark_rows().items():
             target = self._marks_at(selections[j], n, len(self.marks[j]))
             valid = target[..., 2:]
-            if not self._mark_columns(free, j).numel():
+            if not torch.isin(free, self._moving[j]).any():
                 pixels = self.joint_pixels(full, j, rows)[:, :, 1]
                 parts.append((w * (pixels - target[..., :2]) * valid).reshape(n, -1))
                 continue
