@@ -326,7 +326,7 @@ class BendFit(PriorFit):
         model, layout = self.model, self.layout
         parents = model.template.parents
         group = model.template.segment_group.tolist()
-        soles = [int(model._vertex_segment[v]) for v in self.poser.soles]
+        soles = [int(model.template.vertex_segment[v]) for v in self.poser.soles]
 
         def above(s: int) -> list[int]:
             out, s = [], int(parents[s])
