@@ -173,3 +173,47 @@ def test_progress_per_subject_and_per_solver_iteration(dataset, tmp_path):
     assert len(stage) == 1 and stage[0].closed
     assert 1 <= stage[0].n <= stage[0].total == 2  # one update per solver iteration
     assert float(stage[0].postfix["cost"]) > 0 and stage[0].postfix["running"].endswith("/1")
+
+
+def test_params_and_overlay_carry_the_knees_mark(dataset, tmp_path):
+    """With fit.bends on, params.json records posture 3's knee mark and the model's knee,
+    and the overlay draws them (a magenta cross, a green dot) where it records them."""
+    import cv2
+    import numpy as np
+
+    from torchfit.viz.overlay import fit_overlay
+
+    out = tmp_path / "run"
+    proc = fit(
+        "--config",
+        REPO / "configs/demo.yaml",
+        "--data",
+        dataset,
+        "--out",
+        out,
+        "--set",
+        "data.subjects=[alice]",
+        "--set",
+        "fit.bends.weight=1.0",
+        "--set",
+        "output.tensorboard=false",
+        *FAST,
+    )
+    assert proc.returncode == 0, proc.stderr
+    params = json.loads((out / "alice" / "params.json").read_text())
+    knee = params["bends"]["pose3"]["l_knee"]
+    assert set(knee) == {"target_px", "model_px", "offset_px"}
+    assert knee["target_px"] is not None  # the template subject's knee is found
+    u, v = (int(round(c)) for c in knee["target_px"])
+    overlay = cv2.imread(str(out / "alice" / "overlay_pose3.png"))[..., ::-1]  # RGB
+    # the cross's arms, beyond the model knee's dot (the two are within a pixel here)
+    arms = [(v, u - 6), (v, u + 6)]
+    assert all(np.array_equal(overlay[p], [255, 0, 255]) for p in arms)
+    # drawn by the overlay itself, not the person's magenta outline passing there
+    blank = np.zeros((40, 40, 3), np.uint8)
+    empty = np.zeros((40, 40), bool)
+    drawn = fit_overlay(blank, empty, empty, "", None, [((20.0, 20.0), (10.0, 30.0))])
+    bare = fit_overlay(blank, empty, empty, "", None)
+    for p in [(20, 15), (20, 25), (15, 20), (25, 20)]:
+        assert np.array_equal(drawn[p], [255, 0, 255]) and not bare[p].any()
+    assert np.array_equal(drawn[30, 10], [0, 200, 0])  # the model's knee
