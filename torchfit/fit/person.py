@@ -34,7 +34,8 @@ class PersonData:
             such a pixel does not count in e_M, and ``valid`` already excludes the person
             contour pixels next to them (see :func:`person_data_from_masks`).
         silhouettes: optional posture index -> (B, H, W) bool silhouettes, for the postures
-            whose bent joints the fit marks (:class:`torchfit.fit.bends.BendFit`).
+            whose bent joints the fit marks (:class:`torchfit.fit.bends.BendFit`); only the
+            host reads them, and :meth:`to` leaves them where they are.
     """
 
     contours: list[torch.Tensor]
@@ -64,9 +65,7 @@ class PersonData:
             [d.to(device) for d in self.distance_maps],
             self.camera.to(device=device),
             None if self.uncertain is None else [u.to(device) for u in self.uncertain],
-            None
-            if self.silhouettes is None
-            else {k: m.to(device) for k, m in self.silhouettes.items()},
+            self.silhouettes,  # read on the host only (the limbs' crossings), so kept there
         )
 
     def subset(self, index: list[int] | torch.Tensor) -> PersonData:
