@@ -49,19 +49,18 @@ def fit(*args, cwd=REPO):
     return tool("fit.py", *args, cwd=cwd)
 
 
+def demo_fit(dataset, out, *settings):
+    """``tools/fit.py`` with the demo config on ``dataset`` into ``out``, short, with
+    ``--set`` ``settings``."""
+    sets = [a for key in settings for a in ("--set", key)]
+    return fit(
+        "--config", REPO / "configs/demo.yaml", "--data", dataset, "--out", out, *sets, *FAST
+    )
+
+
 def test_fit_cli_writes_outputs_and_survives_a_bad_subject(dataset, tmp_path):
     out = tmp_path / "run"
-    proc = fit(
-        "--config",
-        REPO / "configs/demo.yaml",
-        "--data",
-        dataset,
-        "--out",
-        out,
-        "--set",
-        "run.name=test",
-        *FAST,
-    )
+    proc = demo_fit(dataset, out, "run.name=test")
     assert proc.returncode == 1, proc.stderr  # one subject failed
     rows = {r["subject"]: r for r in csv.DictReader((out / "summary.csv").open())}
     assert set(rows) == {"alice", "bob", "broken"}
@@ -184,20 +183,8 @@ def test_params_and_overlay_carry_the_knees_mark(dataset, tmp_path):
     from torchfit.viz.overlay import fit_overlay
 
     out = tmp_path / "run"
-    proc = fit(
-        "--config",
-        REPO / "configs/demo.yaml",
-        "--data",
-        dataset,
-        "--out",
-        out,
-        "--set",
-        "data.subjects=[alice]",
-        "--set",
-        "fit.bends.weight=1.0",
-        "--set",
-        "output.tensorboard=false",
-        *FAST,
+    proc = demo_fit(
+        dataset, out, "data.subjects=[alice]", "fit.bends.weight=1.0", "output.tensorboard=false"
     )
     assert proc.returncode == 0, proc.stderr
     params = json.loads((out / "alice" / "params.json").read_text())

@@ -184,9 +184,12 @@ class BendFit(PriorFit):
                     f"fit.bends.joints: {unknown} not joints of template "
                     f"{model.template.name!r} (joints: {sorted(known)})"
                 )
-        #: posture -> its marks, in ``poses`` order
-        self.marks = {j: [b for b in marks if b.posture == j] for j in self.poses}
-        self.marks = {j: m for j, m in self.marks.items() if m}
+        #: posture -> its marks, in ``poses`` order (postures without one left out)
+        self.marks = {
+            j: [b for b in marks if b.posture == j]
+            for j in self.poses
+            if any(b.posture == j for b in marks)
+        }
         for j in self.marks:
             silhouettes = person.silhouettes or {}
             if self.poses.index(j) not in silhouettes:
@@ -196,6 +199,10 @@ class BendFit(PriorFit):
                 [[known[n] for n in b.names] for b in m], dtype=torch.long, device=model.device
             )
             for j, m in self.marks.items()
+        }
+        #: the measurements the marks can show (:data:`SHOWN_BY`), found or not
+        self.can_show = {
+            key for m in self.marks.values() for b in m for key in SHOWN_BY.get(_kind(b.joint), ())
         }
         #: posture -> the parameter columns that can move its marked joints (those of the
         #: Jacobian's forward mode; the others' derivatives are structurally zero)
@@ -274,6 +281,11 @@ class BendFit(PriorFit):
             return torch.zeros(n, count, 3, **self.kw)
         return sel.marks
 
+    def _entries(self, pixels: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """(N, 2 L) e_J from the marked joints' pixels (N, L, 2) and their targets (N, L, 3)."""
+        r = self.bend_options.weight * (pixels - target[..., :2]) * target[..., 2:]
+        return r.reshape(pixels.shape[0], -1)
+
     def mark_residual(
         self, full: torch.Tensor, rows: torch.Tensor, selections: dict[int, ContourSelection]
     ) -> torch.Tensor:
@@ -281,9 +293,7 @@ class BendFit(PriorFit):
         parts = [full.new_zeros(full.shape[0], 0)]
         for j, marks in self.marks.items():
             target = self._marks_at(selections[j], full.shape[0], len(marks))
-            pixels = self.joint_pixels(full, j, rows)[:, :, 1]
-            r = self.bend_options.weight * (pixels - target[..., :2]) * target[..., 2:]
-            parts.append(r.reshape(full.shape[0], -1))
+            parts.append(self._entries(self.joint_pixels(full, j, rows)[:, :, 1], target))
         return torch.cat(parts, 1)
 
     def residual(self, full, selections=None, rows=None) -> torch.Tensor:
@@ -352,12 +362,14 @@ class BendFit(PriorFit):
 
     def _mark_jacobian(
         self, full: torch.Tensor, free: torch.Tensor, j: int, rows: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
         """Posture j's marked joints' pixels (N, L, 2), their derivatives (N, L, 2, c) w.r.t.
-        the free columns that can move them, and those columns' positions (c,) in ``free``
-        (forward-mode AD, the tangents folded into the batch)."""
+        the free columns that can move them (``None`` where none does), and those columns'
+        positions (c,) in ``free`` (forward-mode AD, the tangents folded into the batch)."""
         at = torch.isin(free, self._moving[j]).nonzero().flatten()
         n, c = full.shape[0], at.numel()
+        if not c:  # nothing free moves the joints: their pixels alone
+            return self.joint_pixels(full, j, rows)[:, :, 1], None, at
         seg = self._segments[j][:, 1]
         tangent = torch.zeros(n * c, full.shape[1], **self.kw)
         tangent[torch.arange(n * c), free[at].repeat(n)] = 1.0
@@ -377,18 +389,14 @@ class BendFit(PriorFit):
             rows = torch.arange(full.shape[0], device=full.device)
         jac, base = super().jacobian_and_residual(full, free, selections, rows)
         parts = [base]
-        w = self.bend_options.weight
         n = full.shape[0]
         for j, cols in self._mark_rows().items():
             target = self._marks_at(selections[j], n, len(self.marks[j]))
-            valid = target[..., 2:]
-            if not torch.isin(free, self._moving[j]).any():
-                pixels = self.joint_pixels(full, j, rows)[:, :, 1]
-                parts.append((w * (pixels - target[..., :2]) * valid).reshape(n, -1))
-                continue
             pixels, d_pix, at = self._mark_jacobian(full, free, j, rows)
-            parts.append((w * (pixels - target[..., :2]) * valid).reshape(n, -1))
-            jac[:, cols, at] = (w * valid[..., None] * d_pix).reshape(n, -1, at.numel())
+            parts.append(self._entries(pixels, target))
+            if at.numel():
+                weight = self.bend_options.weight * target[..., 2:, None]
+                jac[:, cols, at] = (weight * d_pix).reshape(n, -1, at.numel())
         return jac, torch.cat(parts, 1)
 
     @torch.no_grad()
@@ -424,5 +432,10 @@ class BendFit(PriorFit):
             for joint, mark in joints.items():
                 offset = mark["offset_px"]
                 if offset is not None and offset <= self.bend_options.shown_px:
-                    out.update(SHOWN_BY.get(joint.split("_", 1)[-1], ()))
+                    out.update(SHOWN_BY.get(_kind(joint), ()))
         return out
+
+
+def _kind(joint: str) -> str:
+    """A joint's name without its side: ``"l_knee"`` -> ``"knee"``."""
+    return joint.split("_", 1)[-1]

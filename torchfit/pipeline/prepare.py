@@ -363,7 +363,6 @@ def person_data(
         config.fit.shadow_margin_px,
     )
     if config.fit.bends.weight > 0:
-        poses = list(config.fit.poses)
-        marked = {b.posture for b in parse_bends(config.fit.bends.joints)} & set(poses)
-        person.silhouettes = {poses.index(j): masks[:, poses.index(j)] for j in sorted(marked)}
+        marked = {b.posture for b in parse_bends(config.fit.bends.joints)}
+        person.silhouettes = {k: masks[:, k] for k, j in enumerate(config.fit.poses) if j in marked}
     return person

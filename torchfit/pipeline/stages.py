@@ -273,16 +273,19 @@ def _final_flags(
     free = [c for c in cols if float(fit.lower[c]) < float(fit.upper[c])]
     names = [fit.layout.names[c].removeprefix("scale:") for c in free]
     ranges = population_ranges(_template_ratios(fit))
-    selections = fit.select(x) if isinstance(fit, BendFit) else None
+    selections = None  # the marks' choice, made only where a mark could excuse an outlier
     out = []
     for i in range(x.shape[0]):
         values = {k: float(v[i]) for k, v in measures.items()}
         flags = [downweighted[i][j] for j in sorted(downweighted[i])]
         hard = proportion_flags(values)
-        # a proportion the images show (a knee placed by its limbs) is not judged by the
-        # population's percentiles, only by the hard limits
-        shown = fit.shown(fit.mark_record(x, selections, i)) if selections else set()
-        outliers = [o for o in proportion_outliers(values, ranges) if o.key not in shown]
+        outliers = proportion_outliers(values, ranges)
+        if isinstance(fit, BendFit) and any(o.key in fit.can_show for o in outliers):
+            # a proportion the images show (a knee placed by its limbs) is not judged by the
+            # population's percentiles, only by the hard limits
+            selections = selections or fit.select(x)
+            shown = fit.shown(fit.mark_record(x, selections, i))
+            outliers = [o for o in outliers if o.key not in shown]
         flags += hard or [o.describe() for o in outliers]
         flags += bound_flags([float(x[i, c]) for c in free], names, fit.scale_bounds)
         offsets = {j: fit.layout.root_offsets(x[i], j) for j in fit.poses}
