@@ -197,7 +197,7 @@ def test_uncertain_pixels_are_left_out_of_both_residual_terms(model, subjects):
         x, _ = solve_stage(f, f.initial_params(), StageOptions(name="all"), LMOptions(max_iter=25))
         scales = model.expand_scales(x[:, : f.layout.num_scale_params].reshape(1, -1, 3))
         errors[name] = float(measure_model(model, scales)["height_m"][0]) / truth["height_m"] - 1
-    assert errors["plain"] > 0.01, errors  # the bias the flags are for: taller
+    assert errors["plain"] > 0.007, errors  # the bias the flags are for: taller (1.0 %)
     assert abs(errors["flagged"]) < 0.5 * errors["plain"], errors
 
 

@@ -263,7 +263,7 @@ def test_posture_prior_rows_hold_the_free_arm_angles_to_their_nominal(model, pla
     assert spine.residual_layout.num_pose_prior == sum(
         "vc4_tilt" in layout.free_joint_names(j) for j in fit.poses
     )
-    # the legs are not held
+    # one limb's joint alone
     legs = _posture_prior_problem(model, plain, pose_weight=0.8, joints=("knee_flexion",))
     assert legs.residual_layout.num_pose_prior == sum(
         "knee_flexion" in n for j in fit.poses for n in layout.free_joint_names(j)

@@ -87,3 +87,14 @@ def test_side_views_keep_hip_abduction_fixed():
         assert "l_hip_flexion" in DEFAULT_FREE_JOINTS[j]
     for j in (1, 2, 4, 5):
         assert {"l_hip_abduct", "r_hip_abduct"} <= set(DEFAULT_FREE_JOINTS[j])
+
+
+def test_the_neck_moves_only_across_the_line_of_sight():
+    # the nod (vc4_tilt) is free where the camera sees the body from the side, the side bend
+    # (vc4_roll) where it sees it from the front
+    for j in (3, 6):
+        assert "vc4_tilt" in DEFAULT_FREE_JOINTS[j]
+        assert "vc4_roll" not in DEFAULT_FREE_JOINTS[j]
+    for j in (1, 2, 4, 5):
+        assert "vc4_roll" in DEFAULT_FREE_JOINTS[j]
+        assert "vc4_tilt" not in DEFAULT_FREE_JOINTS[j]

@@ -81,6 +81,9 @@ class PriorOptions:
         "shoulder_abduct",
         "shoulder_twisting",
         "elbow_flexion",
+        "hip_flexion",
+        "knee_flexion",
+        "ankle_flexion",
     )
 
     def __post_init__(self) -> None:
