@@ -216,20 +216,8 @@ class BendFit(PriorFit):
             2 * sum(len(m) for m in self.marks.values()),
         )
 
-    def subset(self, index: list[int]) -> BendFit:
-        """The same problem for a subset of the subjects."""
-        out = BendFit(
-            self.model,
-            self.person.subset(index),
-            self.options,
-            self.scale_bounds,
-            self.prior,
-            self.prior_options,
-            [self.facts[i] for i in index],
-            self.bend_options,
-        )
-        out.pose_weights = self.pose_weights[index].clone()
-        return out
+    def _arguments(self, index: list[int]) -> dict:
+        return {**super()._arguments(index), "bends": self.bend_options}
 
     # ------------------------------------------------------------------------------------
     def _mark_rows(self) -> dict[int, slice]:
@@ -249,15 +237,10 @@ class BendFit(PriorFit):
         points = origins[:, seg.flatten()]  # (N, L*3, 3)
         return self.project(points, rows).reshape(full.shape[0], *seg.shape, 2)
 
-    @torch.no_grad()
-    def select(
-        self, full: torch.Tensor, rows: torch.Tensor | None = None
-    ) -> dict[int, ContourSelection]:
-        """:meth:`SilhouetteFit.select`, with each marked posture's joint targets
-        (``ContourSelection.marks``)."""
-        if rows is None:
-            rows = torch.arange(full.shape[0], device=full.device)
-        chosen = super().select(full, rows)
+    def _choose(self, full: torch.Tensor, rows: torch.Tensor) -> dict[int, ContourSelection]:
+        """The contour choice (:meth:`SilhouetteFit.select`), with each marked posture's joint
+        targets (``ContourSelection.marks``)."""
+        chosen = super()._choose(full, rows)
         opts = self.bend_options
         for j, marks in self.marks.items():
             sel = chosen[j]

@@ -308,20 +308,13 @@ class PriorFit(SilhouetteFit):
         group, _, axis = entry.partition(":")
         return self.layout.scale_column(group, axis)
 
-    def subset(self, index: list[int]) -> PriorFit:
-        """The same problem for a subset of the subjects."""
-        full_prior = self.prior
-        out = PriorFit(
-            self.model,
-            self.person.subset(index),
-            self.options,
-            self.scale_bounds,
-            full_prior,
-            self.prior_options,
-            [self.facts[i] for i in index],
-        )
-        out.pose_weights = self.pose_weights[index].clone()
-        return out
+    def _arguments(self, index: list[int]) -> dict:
+        return {
+            **super()._arguments(index),
+            "prior": self.prior,
+            "prior_options": self.prior_options,
+            "facts": [self.facts[i] for i in index],
+        }
 
     # ------------------------------------------------------------------------------------
     def prior_residual(self, full: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:

@@ -156,12 +156,23 @@ class SilhouetteFit:
         self.upper = layout.upper(**kw)
         #: (B, J) weight of each posture's residuals (e_P and e_M), 1 unless down-weighted.
         self.pose_weights = torch.ones(self.batch, len(self.poses), **kw)
+        #: (parameters, rows, choice) of the last :meth:`select`
+        self._last_choice: tuple | None = None
 
     def subset(self, index: list[int]) -> SilhouetteFit:
         """The same problem for a subset of the subjects (same layout and residual width)."""
-        out = SilhouetteFit(self.model, self.person.subset(index), self.options, self.scale_bounds)
+        out = type(self)(**self._arguments(index))
         out.pose_weights = self.pose_weights[index].clone()
         return out
+
+    def _arguments(self, index: list[int]) -> dict:
+        """The constructor's arguments for the subjects ``index`` (a subclass adds its own)."""
+        return {
+            "model": self.model,
+            "person": self.person.subset(index),
+            "options": self.options,
+            "scale_bounds": self.scale_bounds,
+        }
 
     # ------------------------------------------------------------------------------------
     @property
@@ -226,12 +237,25 @@ class SilhouetteFit:
     ) -> dict[int, ContourSelection]:
         """The discrete model-contour choice at ``full`` (N, P), one per pose.
 
+        The last choice is kept: asked again at the same parameters and rows (the posture
+        check, the judge and the outputs all read the final one), it is returned as it is, not
+        made again. Callers do not modify it.
+
         Args:
             full: (N, P) parameters.
             rows: (N,) subject of each row (default: row i is subject i).
         """
         if rows is None:
             rows = torch.arange(full.shape[0], device=full.device)
+        last = self._last_choice
+        if last is not None and torch.equal(last[0], full) and torch.equal(last[1], rows):
+            return last[2]
+        chosen = self._choose(full, rows)
+        self._last_choice = (full.clone(), rows.clone(), chosen)
+        return chosen
+
+    def _choose(self, full: torch.Tensor, rows: torch.Tensor) -> dict[int, ContourSelection]:
+        """:meth:`select`'s choice, made (a subclass adds to it)."""
         posed = self.poser.world_postures(full, list(self.poses), rows)
         chosen = select_contours(
             self.sampler,

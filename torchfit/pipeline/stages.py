@@ -273,7 +273,6 @@ def _final_flags(
     free = [c for c in cols if float(fit.lower[c]) < float(fit.upper[c])]
     names = [fit.layout.names[c].removeprefix("scale:") for c in free]
     ranges = population_ranges(_template_ratios(fit))
-    selections = None  # the marks' choice, made only where a mark could excuse an outlier
     out = []
     for i in range(x.shape[0]):
         values = {k: float(v[i]) for k, v in measures.items()}
@@ -283,8 +282,7 @@ def _final_flags(
         if isinstance(fit, BendFit) and any(o.key in fit.can_show for o in outliers):
             # a proportion the images show (a knee placed by its limbs) is not judged by the
             # population's percentiles, only by the hard limits
-            selections = selections or fit.select(x)
-            shown = fit.shown(fit.mark_record(x, selections, i))
+            shown = fit.shown(fit.mark_record(x, fit.select(x), i))
             outliers = [o for o in outliers if o.key not in shown]
         flags += hard or [o.describe() for o in outliers]
         flags += bound_flags([float(x[i, c]) for c in free], names, fit.scale_bounds)
