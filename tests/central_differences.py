@@ -16,3 +16,10 @@ def residual_differences(fit, x, selections, rows, columns, h: float = 1e-6) -> 
         minus[:, p] -= h
         out.append((fit.residual(plus, selections) - fit.residual(minus, selections))[:, rows])
     return torch.stack(out, -1) / (2 * h)
+
+
+def perturbed_start(fit, scale: float, seed: int) -> torch.Tensor:
+    """(1, P) the problem's start moved by ``scale`` times seeded normal noise."""
+    g = torch.Generator().manual_seed(seed)
+    noise = torch.randn(1, fit.num_params, generator=g, dtype=torch.float64)
+    return fit.initial_params() + scale * noise

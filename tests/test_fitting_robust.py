@@ -4,7 +4,7 @@ band glued to an arm that pulls least squares and not Huber."""
 
 import pytest
 import torch
-from central_differences import residual_differences
+from central_differences import perturbed_start, residual_differences
 from template_subjects import make_template_subject
 
 from torchfit.body.measure import measure_model
@@ -61,10 +61,7 @@ def test_weighted_jacobian_matches_central_differences(model, subject):
     s, masks, _ = subject
     fit = _problem(model, s, masks)
     fit.pose_weights = torch.tensor([[1.0, 0.1, 0.5, 1.0, 0.3, 1.0]], dtype=torch.float64)
-    g = torch.Generator().manual_seed(1)
-    x = fit.initial_params() + 0.01 * torch.randn(
-        1, fit.num_params, generator=g, dtype=torch.float64
-    )
+    x = perturbed_start(fit, 0.01, 1)
     sel = fit.select(x)
     jac = fit.jacobian(x, torch.arange(fit.num_params), sel)
     columns = range(0, fit.num_params, 7)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from central_differences import residual_differences
+from central_differences import perturbed_start, residual_differences
 
 from torchfit.body.measure import measure_model
 from torchfit.body.postures import POSTURES, pose_nominal
@@ -82,10 +82,7 @@ def test_the_mark_is_the_persons_knee(model, scene):
 
 def test_mark_rows_of_the_jacobian_match_central_differences(model, scene):
     fit = _side_knee_fit(model, scene, weight=0.7)
-    g = torch.Generator().manual_seed(3)
-    x = fit.initial_params() + 0.01 * torch.randn(
-        1, fit.num_params, generator=g, dtype=torch.float64
-    )
+    x = perturbed_start(fit, 0.01, 3)
     sel = fit.select(x)
     assert float(sel[3].marks[0, 0, 2]) == 1.0
     free = torch.arange(fit.num_params)

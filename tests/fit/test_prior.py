@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from central_differences import residual_differences
+from central_differences import perturbed_start, residual_differences
 from template_subjects import make_template_subject, segment_subjects
 
 from torchfit.body.measure import measure_model
@@ -89,10 +89,7 @@ def test_unknown_prior_is_named():
 
 def test_added_rows_of_the_jacobian_match_central_differences(model, plain):
     fit = _problem(model, [plain[0]], [KnownFacts(height_m=1.70, sex="male")], weight=1.3)
-    g = torch.Generator().manual_seed(0)
-    x = fit.initial_params() + 0.02 * torch.randn(
-        1, fit.num_params, generator=g, dtype=torch.float64
-    )
+    x = perturbed_start(fit, 0.02, 0)
     sel = fit.select(x)
     free = torch.arange(fit.layout.num_scale_params)
     jac = fit.jacobian(x, free, sel)
@@ -236,10 +233,7 @@ def test_posture_prior_rows_hold_the_free_arm_angles_to_their_nominal(model, pla
                 dof = block.dofs[k]
                 expected.append((block.joints.start + k, float(fit.poser.nominal[j][dof])))
     assert rl.num_pose_prior == len(expected) > 6 * 4  # both sides, every posture
-    g = torch.Generator().manual_seed(3)
-    x = fit.initial_params() + 0.1 * torch.randn(
-        1, fit.num_params, generator=g, dtype=torch.float64
-    )
+    x = perturbed_start(fit, 0.1, 3)
     got = fit.residual(x)[0, rl.pose_prior]
     direct = torch.tensor(
         [0.8 * (float(x[0, c]) - nom) / math.radians(12.0) for c, nom in expected]
@@ -270,10 +264,7 @@ def test_posture_prior_rows_hold_the_free_arm_angles_to_their_nominal(model, pla
 
 def test_posture_prior_jacobian_rows_match_central_differences(model, plain):
     fit = _posture_prior_problem(model, plain, pose_weight=1.5)
-    g = torch.Generator().manual_seed(4)
-    x = fit.initial_params() + 0.05 * torch.randn(
-        1, fit.num_params, generator=g, dtype=torch.float64
-    )
+    x = perturbed_start(fit, 0.05, 4)
     sel = fit.select(x)
     free = fit.stage_indices(["all"], joints=True, root=True)
     jac, r = fit.jacobian_and_residual(x, free, sel)
