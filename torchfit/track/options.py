@@ -67,6 +67,16 @@ class TrackOptions:
             silhouette shows (0 turns it off).
         velocity_damping: the prediction is ``x_{t-1} + velocity_damping (x_{t-1} - x_{t-2})``
             (1: constant velocity, 0: the last pose).
+        turn_velocity: the prediction continues the body's turn about the vertical: its root
+            rotation is the last one turned by ``turn_velocity`` times the recent turn rate
+            (radians per frame, smoothed and shrunk by ``turn_dead_deg``). A silhouette looks
+            the same from the front and from the back: a person turning through the side view
+            can be followed on either way out of it, and with the last pose as the prediction
+            the model turned back while the person turned on (0 turns it off).
+        turn_smoothing: the turn rate is the exponential average ``a rate + (1 - a) turn``
+            of the frames' turns, ``a`` this (reset to 0 after a frame not ``ok``).
+        turn_dead_deg: degrees per frame taken off the turn rate's size before it is
+            continued, so that a standing person's heading noise is not carried on.
         ftol, xtol: the solver's stopping tolerances (:class:`torchfit.solver.LMOptions`):
             a row stops before ``iterations`` once its relative cost reduction or its
             relative step falls below them.
@@ -96,6 +106,9 @@ class TrackOptions:
     velocity_damping: float = 0.0
     twist_weight: float = 20.0
     temporal_depth: float = 15.0
+    turn_velocity: float = 1.0
+    turn_smoothing: float = 0.6
+    turn_dead_deg: float = 2.0
 
 
 class PoseLayout:

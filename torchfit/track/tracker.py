@@ -6,7 +6,10 @@ Per frame: each sequence's image is segmented against its background
 solve_frame` fits every row's pose, warm-started and pulled towards the prediction
 ``x_{t-1} + d (x_{t-1} - x_{t-2})`` (``d`` the options' ``velocity_damping``: 1
 extrapolates the last velocity, 0 holds the last pose; a silhouette leaves some directions
-unseen, and a velocity extrapolated along them makes the pose drift).
+unseen, and a velocity extrapolated along them makes the pose drift), with the root's turn
+about the vertical carried on at its recent rate (``turn_velocity``: front and back draw the
+same silhouette, and a person turning through the side view was otherwise followed back the
+way they came).
 
 Recovery: a row whose contour RMS exceeds ``recover_factor`` times its sequence's running
 median of good frames (and at least ``recover_min_px``; before any good frame,
@@ -23,6 +26,7 @@ those poses is right.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
@@ -30,6 +34,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchfit.body.model import BodyModel
+from torchfit.body.rotations import axis_angle_to_matrix
 from torchfit.camera import Camera
 from torchfit.fit.model_contour import EdgeSampler
 from torchfit.fit.person import PersonData, person_data_from_masks
@@ -51,6 +56,50 @@ class FrameRecord:
     contour_rms: float
     confidence: float
     x: torch.Tensor = field(repr=False)
+
+
+def _turn_about_vertical(r: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Axis-angles (B, 3) of ``Rz(angle) Exp(r)`` (``angle`` (B,) radians about the world's
+    vertical), by quaternions; of the two axis-angles of a rotation (``θ u`` and
+    ``(θ - 2π) u``), the one nearer ``r``."""
+    theta = r.norm(dim=1, keepdim=True)
+    axis = r / theta.clamp_min(1e-12)
+    w1, v1 = torch.cos(theta / 2), torch.sin(theta / 2) * axis
+    wz, sz = torch.cos(angle / 2)[:, None], torch.sin(angle / 2)[:, None]
+    # (wz, 0, 0, sz) * (w1, v1)
+    w = wz * w1 - sz * v1[:, 2:3]
+    v = wz * v1 + sz * torch.cat([-v1[:, 1:2], v1[:, 0:1], w1], 1)
+    n = v.norm(dim=1, keepdim=True)
+    out = 2 * torch.atan2(n, w) * v / n.clamp_min(1e-12)
+    alt = out - 2 * torch.pi * v / n.clamp_min(1e-12)  # the same turn the other way round
+    closer = (alt - r).norm(dim=1, keepdim=True) < (out - r).norm(dim=1, keepdim=True)
+    return torch.where(closer, alt, out)
+
+
+def _heading(r: torch.Tensor) -> torch.Tensor:
+    """(B,) the heading (radians about the vertical) of the root frame's x axis (the body's
+    left-right axis) under axis-angles ``r`` (B, 3)."""
+    m = axis_angle_to_matrix(r)
+    return torch.atan2(m[:, 1, 0], m[:, 0, 0])
+
+
+def _wrapped(a: torch.Tensor) -> torch.Tensor:
+    """Angles into [-π, π)."""
+    return torch.remainder(a + torch.pi, 2 * torch.pi) - torch.pi
+
+
+def _predict(
+    prev: torch.Tensor, prev2: torch.Tensor, rate: torch.Tensor, options: TrackOptions
+) -> torch.Tensor:
+    """The prediction before the limits: the last pose plus ``velocity_damping`` times its
+    velocity, its root turned about the vertical by ``turn_velocity`` times the turn rate
+    ``rate`` (B,) (radians per frame) less ``turn_dead_deg``."""
+    pred = prev + options.velocity_damping * (prev - prev2)
+    if options.turn_velocity:
+        pred = pred.clone()
+        turn = torch.sign(rate) * (rate.abs() - math.radians(options.turn_dead_deg)).clamp_min(0)
+        pred[:, 3:6] = _turn_about_vertical(prev[:, 3:6], options.turn_velocity * turn)
+    return pred
 
 
 def _median(values: list[float]) -> float:
@@ -103,6 +152,7 @@ def track(
     b = scales.shape[0]
     prev = x_start.clone()
     prev2 = x_start.clone()
+    rate = torch.zeros(b, dtype=x_start.dtype, device=x_start.device)  # turn per frame
     good = x_start.clone()
     history: list[list[float]] = [[] for _ in range(b)]
     out: list[list[FrameRecord]] = [[] for _ in range(b)]
@@ -120,7 +170,7 @@ def track(
             if isinstance(mask, PersonData)
             else frame_data(mask, cameras, options, model.dtype)
         )
-        pred = layout.clip(prev + options.velocity_damping * (prev - prev2))
+        pred = layout.clip(_predict(prev, prev2, rate, options))
         res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)
         status = ["ok"] * b
         limit = [
@@ -167,6 +217,11 @@ def track(
                     x=res.x[i].detach().clone(),
                 )
             )
-        prev2 = torch.where(torch.tensor([s == "ok" for s in status])[:, None], prev, res.x)
+        okay = torch.tensor([s == "ok" for s in status], device=res.x.device)
+        # the turn rate: from the second frame on, over frames ok in a row
+        turned = _wrapped(_heading(res.x[:, 3:6]) - _heading(prev[:, 3:6]))
+        a = options.turn_smoothing
+        rate = torch.where(okay & (f > 0), a * rate + (1 - a) * turned, torch.zeros_like(rate))
+        prev2 = torch.where(okay[:, None], prev, res.x)
         prev = res.x.detach().clone()
     return out
