@@ -27,16 +27,19 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 import time
 from pathlib import Path
 
 from tqdm import tqdm
 
 from torchfit.config import load_config
+from torchfit.errors import TorchfitError
 from torchfit.synth.generate import SynthConfig, make_subject
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
+    """Exit codes: 0 done, 2 a bad config or argument, or anny (the ``synth`` extra) missing."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="output folder (one sub-folder per subject)")
     parser.add_argument("--n", type=int, required=True, help="number of subjects")
@@ -54,11 +57,14 @@ def main(argv: list[str] | None = None) -> None:
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    cfg = load_config(args.config, args.set, schema=SynthConfig)
+    try:
+        cfg = load_config(args.config, args.set, schema=SynthConfig)
+        from torchfit.synth.body import load_anny  # imports anny (the synth extra) lazily
 
-    from torchfit.synth.body import load_anny  # imports anny (the synth extra) lazily
-
-    model = load_anny()
+        model = load_anny()
+    except TorchfitError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     out = Path(args.out)
     folders = []
     for i in tqdm(range(args.first, args.first + args.n), desc="subjects"):
@@ -71,7 +77,8 @@ def main(argv: list[str] | None = None) -> None:
         from torchfit.synth.sheet import contact_sheet
 
         contact_sheet(folders, args.contact_sheet)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

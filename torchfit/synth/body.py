@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchfit.errors import ModelError
 from torchfit.synth.postures import segment_rotations
 
 __all__ = [
@@ -63,11 +64,23 @@ SEGMENT_BONES: dict[str, tuple[str, str]] = {
 }
 
 
+#: how to install what :func:`load_anny` needs
+SYNTH_INSTALL_HINT = 'install it with `pip install -e ".[synth]"` (or `pip install anny`)'
+
+
 @functools.lru_cache(maxsize=1)
 def load_anny() -> Any:
-    """The anny full-body model (built once, about a minute the first time; cached)."""
-    import anny  # the optional ``synth`` extra
+    """The anny full-body model (built once, about a minute the first time; cached).
 
+    Raises:
+        ModelError: anny (the optional ``synth`` extra) is not installed.
+    """
+    try:
+        import anny  # the optional ``synth`` extra
+    except ImportError as exc:
+        raise ModelError(
+            f"the synthetic bodies need anny, which is not installed: {SYNTH_INSTALL_HINT} ({exc})"
+        ) from exc
     return anny.Anny()
 
 
