@@ -252,18 +252,18 @@ def test_limb_depth_pull_holds_arms_the_silhouette_hides(model, camera):
 def test_turn_about_vertical_composes_with_the_root_rotation():
     """``Rz(a) Exp(r)`` as an axis-angle, the representative nearest ``r`` (axis-angles
     beyond π included), and the heading it reports turns by ``a``."""
-    from torchfit.body.rotations import axis_angle_to_matrix
-    from torchfit.track.tracker import _heading, _turn_about_vertical, _wrapped
+    from torchfit.body.rotations import axis_angle_to_matrix, heading, turn_about_vertical
+    from torchfit.track.tracker import _wrapped
 
     g = torch.Generator().manual_seed(3)
     r = torch.randn(64, 3, generator=g, dtype=torch.float64) * 1.5
     a = (torch.rand(64, generator=g, dtype=torch.float64) - 0.5) * 1.0
-    out = _turn_about_vertical(r, a)
+    out = turn_about_vertical(r, a)
     c, s = torch.cos(a), torch.sin(a)
     rz = torch.zeros(64, 3, 3, dtype=torch.float64)
     rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
     torch.testing.assert_close(axis_angle_to_matrix(out), rz @ axis_angle_to_matrix(r))
-    torch.testing.assert_close(_wrapped(_heading(out) - _heading(r) - a), torch.zeros_like(a))
+    torch.testing.assert_close(_wrapped(heading(out) - heading(r) - a), torch.zeros_like(a))
     # the other representative of each turn is never nearer r
     theta = out.norm(dim=1, keepdim=True)
     other = out - 2 * math.pi * out / theta
@@ -275,8 +275,9 @@ def test_a_turn_through_the_side_view_is_followed(model, camera):
     (14 frames, 210°). Front and back draw the same silhouette: holding the last pose
     (``turn_velocity`` 0) the tracker lags, then turns back the way it came and ends 170° off;
     carrying the turn on (the default) it ends within 20°."""
+    from torchfit.body.rotations import heading, turn_about_vertical
     from torchfit.track import track
-    from torchfit.track.tracker import _heading, _turn_about_vertical, _wrapped
+    from torchfit.track.tracker import _wrapped
 
     ground = _standing(
         model,
@@ -287,7 +288,7 @@ def test_a_turn_through_the_side_view_is_followed(model, camera):
     n = 14
     angles = math.radians(15.0) * torch.arange(1, n + 1, dtype=torch.float64)
     truth = ground.repeat(n, 1)
-    truth[:, 3:6] = _turn_about_vertical(ground[:, 3:6].expand(n, -1), angles)
+    truth[:, 3:6] = turn_about_vertical(ground[:, 3:6].expand(n, -1), angles)
     masks = []
     for x in truth:
         t, r, q = PoseLayout.split(x[None])
@@ -299,7 +300,7 @@ def test_a_turn_through_the_side_view_is_followed(model, camera):
     for velocity in (0.0, TrackOptions().turn_velocity):
         opts = TrackOptions(turn_velocity=velocity)
         x = track(model, _ones(model, 1), camera, masks, ground, opts)[0][-1].x[None]
-        off = _wrapped(_heading(x[:, 3:6]) - _heading(truth[-1:, 3:6]))
+        off = _wrapped(heading(x[:, 3:6]) - heading(truth[-1:, 3:6]))
         end[velocity] = abs(math.degrees(float(off)))
     print("final heading error (deg), held / carried on:", end)
     assert end[0.0] > 90, end

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchfit.body.model import BodyModel
-from torchfit.body.rotations import axis_angle_to_matrix
+from torchfit.body.rotations import heading, turn_about_vertical
 from torchfit.camera import Camera
 from torchfit.fit.model_contour import EdgeSampler
 from torchfit.fit.person import PersonData, person_data_from_masks
@@ -58,31 +58,6 @@ class FrameRecord:
     x: torch.Tensor = field(repr=False)
 
 
-def _turn_about_vertical(r: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    """Axis-angles (B, 3) of ``Rz(angle) Exp(r)`` (``angle`` (B,) radians about the world's
-    vertical), by quaternions; of the two axis-angles of a rotation (``θ u`` and
-    ``(θ - 2π) u``), the one nearer ``r``."""
-    theta = r.norm(dim=1, keepdim=True)
-    axis = r / theta.clamp_min(1e-12)
-    w1, v1 = torch.cos(theta / 2), torch.sin(theta / 2) * axis
-    wz, sz = torch.cos(angle / 2)[:, None], torch.sin(angle / 2)[:, None]
-    # (wz, 0, 0, sz) * (w1, v1)
-    w = wz * w1 - sz * v1[:, 2:3]
-    v = wz * v1 + sz * torch.cat([-v1[:, 1:2], v1[:, 0:1], w1], 1)
-    n = v.norm(dim=1, keepdim=True)
-    out = 2 * torch.atan2(n, w) * v / n.clamp_min(1e-12)
-    alt = out - 2 * torch.pi * v / n.clamp_min(1e-12)  # the same turn the other way round
-    closer = (alt - r).norm(dim=1, keepdim=True) < (out - r).norm(dim=1, keepdim=True)
-    return torch.where(closer, alt, out)
-
-
-def _heading(r: torch.Tensor) -> torch.Tensor:
-    """(B,) the heading (radians about the vertical) of the root frame's x axis (the body's
-    left-right axis) under axis-angles ``r`` (B, 3)."""
-    m = axis_angle_to_matrix(r)
-    return torch.atan2(m[:, 1, 0], m[:, 0, 0])
-
-
 def _wrapped(a: torch.Tensor) -> torch.Tensor:
     """Angles into [-π, π)."""
     return torch.remainder(a + torch.pi, 2 * torch.pi) - torch.pi
@@ -98,7 +73,7 @@ def _predict(
     if options.turn_velocity:
         pred = pred.clone()
         turn = torch.sign(rate) * (rate.abs() - math.radians(options.turn_dead_deg)).clamp_min(0)
-        pred[:, 3:6] = _turn_about_vertical(prev[:, 3:6], options.turn_velocity * turn)
+        pred[:, 3:6] = turn_about_vertical(prev[:, 3:6], options.turn_velocity * turn)
     return pred
 
 
@@ -153,6 +128,7 @@ def track(
     prev = x_start.clone()
     prev2 = x_start.clone()
     rate = torch.zeros(b, dtype=x_start.dtype, device=x_start.device)  # turn per frame
+    facing = heading(prev[:, 3:6])  # the last pose's heading
     good = x_start.clone()
     history: list[list[float]] = [[] for _ in range(b)]
     out: list[list[FrameRecord]] = [[] for _ in range(b)]
@@ -219,7 +195,8 @@ def track(
             )
         okay = torch.tensor([s == "ok" for s in status], device=res.x.device)
         # the turn rate: from the second frame on, over frames ok in a row
-        turned = _wrapped(_heading(res.x[:, 3:6]) - _heading(prev[:, 3:6]))
+        now = heading(res.x[:, 3:6])
+        turned, facing = _wrapped(now - facing), now
         a = options.turn_smoothing
         rate = torch.where(okay & (f > 0), a * rate + (1 - a) * turned, torch.zeros_like(rate))
         prev2 = torch.where(okay[:, None], prev, res.x)
