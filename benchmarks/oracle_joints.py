@@ -32,10 +32,12 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 class JointPixelFit(PriorFit):
-    """:class:`PriorFit` with joint-pixel residuals appended after all its own.
+    """A built problem (a :class:`PriorFit` or a subclass) with joint-pixel residuals appended
+    after all its own.
 
-    Made from a built problem by :func:`attach`. The rows count as posture-prior rows in the
-    residual layout (least squares, always valid) but are dense in the solver's blocks.
+    Made from a built problem by :func:`attach`, as a subclass of the problem's own class. The
+    rows count as joint-mark rows in the residual layout (the last entries; least squares,
+    always valid) but are dense in the solver's blocks.
     """
 
     def _attach(self, targets: torch.Tensor, joints: list[str], pose: int, weight: float):
@@ -45,13 +47,15 @@ class JointPixelFit(PriorFit):
         self.num_joint_rows = 2 * len(joints)
         layout = self.residual_layout
         self.own_size = layout.size
+        # the last entries of the layout: after a bend fit's own marks, else after e_A
+        last = "num_marks" if hasattr(self, "_mark_rows") else "num_pose_prior"
         self.residual_layout = dataclasses.replace(
-            layout, num_pose_prior=layout.num_pose_prior + self.num_joint_rows
+            layout, **{last: getattr(layout, last) + self.num_joint_rows}
         )
 
     def subset(self, index: list[int]) -> JointPixelFit:
         out = super().subset(index)
-        out.__class__ = JointPixelFit
+        out.__class__ = type(self)
         out._attach(self.targets[index], self.joint_names, self.joint_pose, self.joint_weight)
         return out
 
@@ -70,9 +74,10 @@ class JointPixelFit(PriorFit):
 
     def jacobian_blocks(self, free: torch.Tensor) -> list[tuple[slice, torch.Tensor]]:
         out = []
-        held = self.residual_layout.pose_prior
+        layout = self.residual_layout
+        held = layout.marks if hasattr(self, "_mark_rows") else layout.pose_prior
         for rows, cols in super().jacobian_blocks(free):
-            if rows == held:  # the posture prior's own rows; the joint rows stay dense
+            if rows == held:  # the problem's own last rows; the joint rows stay dense
                 rows = slice(held.start, held.stop - self.num_joint_rows)
             if rows.stop > rows.start:
                 out.append((rows, cols))
@@ -91,6 +96,16 @@ class JointPixelFit(PriorFit):
         return jac, torch.cat([r[:, : self.own_size], extra.detach()], 1)
 
 
+def with_joint_rows(
+    fit: PriorFit, targets: torch.Tensor, joints: list[str], pose: int, weight: float
+) -> JointPixelFit:
+    """Turn a built problem (a :class:`PriorFit` or a subclass, e.g. a bend fit) into a
+    :class:`JointPixelFit` of its own class, with the joints' target pixels (B, K, 2)."""
+    fit.__class__ = type(f"JointPixel{type(fit).__name__}", (JointPixelFit, type(fit)), {})
+    fit._attach(targets, joints, pose, weight)
+    return fit
+
+
 def attach(fit: PriorFit, subjects, joints: list[str], pose: int, weight: float) -> JointPixelFit:
     """Turn a built problem into a :class:`JointPixelFit` for ``subjects`` (their truth)."""
     targets = []
@@ -99,9 +114,7 @@ def attach(fit: PriorFit, subjects, joints: list[str], pose: int, weight: float)
             [[s.truth["joints_world"][f"pose{pose}"][j] for j in joints]], dtype=torch.float64
         )
         targets.append(project_points(world, s.camera.to(dtype=torch.float64))[0])
-    fit.__class__ = JointPixelFit
-    fit._attach(torch.stack(targets), joints, pose, weight)
-    return fit
+    return with_joint_rows(fit, torch.stack(targets), joints, pose, weight)
 
 
 def main() -> None:

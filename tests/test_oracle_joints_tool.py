@@ -1,4 +1,5 @@
-"""benchmarks/oracle_joints.py: the joint-pixel rows it adds to a problem (no fits)."""
+"""benchmarks/oracle_joints.py: the joint-pixel rows it adds to a problem (no fits), with and
+without the shipped bend marks (whose rows the joint rows must follow)."""
 
 import pytest
 import torch
@@ -7,6 +8,7 @@ from template_subjects import make_template_subject, segment_subjects
 
 from torchfit.camera import project_points, stack_cameras
 from torchfit.fit import person_data_from_masks
+from torchfit.fit.bends import BendFit, BendOptions
 from torchfit.fit.prior import PriorFit, PriorOptions
 from torchfit.io.dataset import load_subject
 
@@ -23,14 +25,24 @@ def subject(tmp_path_factory, model):
     return load_subject(root / "s")
 
 
-def test_joint_rows_are_the_weighted_pixel_errors_and_their_jacobian(tool, model, subject):
-    person = person_data_from_masks(segment_subjects([subject]), stack_cameras([subject.camera]))
-    fit = PriorFit(model, person, prior_options=PriorOptions(pose_weight=0.5))
+@pytest.mark.parametrize("problem", ["prior", "bends"])
+def test_joint_rows_are_the_weighted_pixel_errors_and_their_jacobian(tool, model, subject, problem):
+    masks = segment_subjects([subject])  # (1, 6, H, W)
+    person = person_data_from_masks(masks, stack_cameras([subject.camera]))
+    person.silhouettes = {j: masks[:, j] for j in range(masks.shape[1])}
+    options = PriorOptions(pose_weight=0.5)
+    if problem == "prior":
+        fit = PriorFit(model, person, prior_options=options)
+    else:
+        fit = BendFit(model, person, prior_options=options, bends=BendOptions(weight=1.0))
+        assert fit.residual_layout.num_marks > 0
     size = fit.residual_layout.size
     targets = torch.tensor([[[200.0, 150.0], [190.0, 210.0]]], dtype=torch.float64)
-    fit.__class__ = tool.JointPixelFit
-    fit._attach(targets, ["l_knee", "l_ankle"], 3, 2.0)
+    fit = tool.with_joint_rows(fit, targets, ["l_knee", "l_ankle"], 3, 2.0)
     assert fit.residual_layout.size == size + 4
+    assert fit.residual_mask().shape[1] == size + 4
+    assert fit.loss_units().shape[1] == size + 4
+    assert bool(torch.isinf(fit.loss_units()[0, size:]).all())  # least squares
     g = torch.Generator().manual_seed(5)
     x = fit.initial_params() + 0.03 * torch.randn(
         1, fit.num_params, generator=g, dtype=torch.float64
@@ -45,6 +57,7 @@ def test_joint_rows_are_the_weighted_pixel_errors_and_their_jacobian(tool, model
     # their Jacobian against central differences, and the pass's residual is residual()'s
     free = fit.stage_indices(["all"], joints=True, root=True)
     jac, r2 = fit.jacobian_and_residual(x, free, sel)
+    assert jac.shape[1] == r.shape[1] == size + 4
     torch.testing.assert_close(r2, r)
     h = 1e-6
     for k in range(0, free.numel(), 7):

@@ -1,0 +1,101 @@
+"""Where a fitted arm span's error comes from: the T-pose image, or the depth the fit gives it.
+
+A diagnostic, not a method: it reads ``truth.json`` and ``truth_masks/``. For every subject of
+a benchmark run it prints, in percent:
+
+- ``span``: the fitted arm span's error against the truth;
+- ``image``: the true T-pose silhouette's width (``truth_masks/pose4.png``, leftmost to
+  rightmost pixel) times the true depth of the shoulders and wrists over the focal length,
+  against the true span: what the T-pose image alone shows when its depth is known;
+- ``depth``: the fitted root's floor point in posture 4 against the true back joint's floor
+  point, both as depths along the camera's axis: how far the fit placed the person from the
+  camera in the T-pose (approximate: the template's root and the truth's back joint are not
+  the same point);
+- ``ratio``: the true arm span over the true height.
+
+Then the correlations of ``span`` with the other three over the subjects.
+
+    python benchmarks/span_depth.py --data <dev set> --run <benchmark run folder>
+
+Only for development sets: it uses their truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+
+def subject_row(subject: Path, fitted: dict) -> dict[str, float]:
+    """The four figures of one subject (see the module docstring)."""
+    truth = json.loads((subject / "truth.json").read_text())
+    camera = yaml.safe_load((subject / "camera.yaml").read_text())
+    rotation, translation = np.array(camera["R"]), np.array(camera["t"])
+    focal = float(np.array(camera["K"])[0, 0])
+    joints = truth["joints_world"]["pose4"]
+    depth = np.mean(
+        [
+            (rotation @ np.array(joints[k]) + translation)[2]
+            for k in ("l_wrist", "r_wrist", "l_shoulder", "r_shoulder")
+        ]
+    )
+    mask = cv2.imread(str(subject / "truth_masks" / "pose4.png"), cv2.IMREAD_GRAYSCALE) > 127
+    columns = np.nonzero(mask.any(0))[0]
+    width_m = (columns.max() - columns.min() + 1) * depth / focal
+    root = fitted["params"]["poses"]["pose4"]["root_translation_xy"]
+    back = joints["back"]
+    fit_depth = (rotation @ np.array([root[0], root[1], 0.0]) + translation)[2]
+    true_depth = (rotation @ np.array([back[0], back[1], 0.0]) + translation)[2]
+    span = truth["arm_span_m"]
+    return {
+        "span": 100 * (fitted["measurements"]["arm_span_m"] / span - 1),
+        "image": 100 * (width_m / span - 1),
+        "depth": 100 * (fit_depth / true_depth - 1),
+        "ratio": span / truth["height_m"],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", required=True, help="the development set the run fitted")
+    p.add_argument("--run", required=True, help="the benchmark's output folder")
+    args = p.parse_args(argv)
+    data, run = Path(args.data), Path(args.run)
+    rows = {}
+    with open(run / "summary.csv") as f:
+        for line in csv.DictReader(f):
+            folder = run / line["subject"]
+            if line["status"] == "failed" or not (folder / "params.json").is_file():
+                continue
+            fitted = {
+                "params": json.loads((folder / "params.json").read_text()),
+                "measurements": json.loads((folder / "measurements.json").read_text()),
+            }
+            rows[line["subject"]] = (line["status"], subject_row(data / line["subject"], fitted))
+    if len(rows) < 3:
+        raise SystemExit("error: fewer than 3 fitted subjects with truth")
+    print(f"{'subject':12s} {'status':9s} {'span':>7s} {'image':>7s} {'depth':>7s} {'ratio':>6s}")
+    for name, (status, r) in rows.items():
+        print(
+            f"{name:12s} {status:9s} {r['span']:+7.2f} {r['image']:+7.2f} {r['depth']:+7.2f}"
+            f" {r['ratio']:6.3f}"
+        )
+    table = {k: np.array([r[k] for _, r in rows.values()]) for k in ("span", "image", "depth")}
+    ratio = np.array([r["ratio"] for _, r in rows.values()])
+    print(
+        f"mean |error| %: span {np.abs(table['span']).mean():.2f}, image "
+        f"{np.abs(table['image']).mean():.2f}, depth {np.abs(table['depth']).mean():.2f}"
+    )
+    for name, other in (("image", table["image"]), ("depth", table["depth"]), ("ratio", ratio)):
+        print(f"correlation of span with {name}: {np.corrcoef(table['span'], other)[0, 1]:+.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
