@@ -36,8 +36,9 @@ class JointPixelFit(PriorFit):
     after all its own.
 
     Made from a built problem by :func:`attach`, as a subclass of the problem's own class. The
-    rows count as joint-mark rows in the residual layout (the last entries; least squares,
-    always valid) but are dense in the solver's blocks.
+    rows are the residual layout's last entries (counted as joint marks in a bend fit, as
+    posture-prior entries otherwise; least squares, always valid) and dense in the solver's
+    blocks.
     """
 
     def _attach(self, targets: torch.Tensor, joints: list[str], pose: int, weight: float):
