@@ -1,17 +1,20 @@
-"""What the fit would gain from knowing where some joints are in one posture's image.
+"""What the fit would gain from knowing where some joints are in one posture's image, or how
+far they are from the camera.
 
 A diagnostic, not a method: it reads ``truth.json``. Each subject's problem gets two more
 least-squares residuals per named joint, ``weight * (fitted pixel - true pixel)``, the joint's
-true world position (``joints_world.pose<j>``) projected with the subject's camera. Then the
-whole benchmark runs as ``tools/benchmark.py`` runs it: segmentation, start, stages, judge,
-report. If the measurements come out right with the true pixels, the information missing
-from the fit is where those joints sit in that image; if they do not, it is elsewhere.
+true world position (``joints_world.pose<j>``) projected with the subject's camera; with
+``--depth`` one instead, ``weight * (fitted depth - true depth) / 1 cm``, the depth along the
+camera's axis. Then the whole benchmark runs as ``tools/benchmark.py`` runs it:
+segmentation, start, stages, judge, report. If the measurements come out right with the true
+pixels (depths), the information missing from the fit is where those joints sit in that image
+(how far from the camera); if they do not, it is elsewhere.
 
     python benchmarks/oracle_joints.py --data <dev set> --out DIR --joints l_knee,l_ankle \
-        [--pose 3] [--weight 2] [--config configs/benchmark.yaml] [--set KEY=VALUE ...]
+        [--pose 3] [--weight 2] [--depth] [--config configs/benchmark.yaml] [--set KEY=VALUE ...]
 
-``--weight 2``: one pixel off costs as much as a posture whose contour is 2 pixels off on
-average. Only for development sets: it uses their truth.
+``--weight 2``: one pixel (one centimetre) off costs as much as a posture whose contour is 2
+pixels off on average. Only for development sets: it uses their truth.
 """
 
 from __future__ import annotations
@@ -41,11 +44,14 @@ class JointPixelFit(PriorFit):
     blocks.
     """
 
-    def _attach(self, targets: torch.Tensor, joints: list[str], pose: int, weight: float):
-        self.targets = targets.to(**self.kw)  # (B, K, 2)
+    def _attach(
+        self, targets: torch.Tensor, joints: list[str], pose: int, weight: float, depth: bool
+    ):
+        self.targets = targets.to(**self.kw)  # (B, K, 2) pixels, or (B, K) depths
         self.joint_names, self.joint_pose, self.joint_weight = list(joints), pose, weight
+        self.joint_depth = depth
         self.joint_segments = [self.model.template.joints[j] for j in joints]
-        self.num_joint_rows = 2 * len(joints)
+        self.num_joint_rows = (1 if depth else 2) * len(joints)
         layout = self.residual_layout
         self.own_size = layout.size
         # the last entries of the layout: after a bend fit's own marks, else after e_A
@@ -57,15 +63,30 @@ class JointPixelFit(PriorFit):
     def subset(self, index: list[int]) -> JointPixelFit:
         out = super().subset(index)
         out.__class__ = type(self)
-        out._attach(self.targets[index], self.joint_names, self.joint_pose, self.joint_weight)
+        out._attach(
+            self.targets[index],
+            self.joint_names,
+            self.joint_pose,
+            self.joint_weight,
+            self.joint_depth,
+        )
         return out
 
     def joint_residual(self, full: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        """(N, 2K) ``weight * (fitted - true pixel)`` of the joints."""
+        """(N, 2K) ``weight * (fitted - true pixel)`` of the joints, or (N, K) ``weight *
+        (fitted - true depth) / 1 cm``."""
         one = torch.zeros(1, dtype=torch.long, device=full.device)  # pose no vertex but one
         _, origins = self.pose_world(full, self.joint_pose, rows, one)
+        if self.joint_depth:
+            return self.joint_weight * 100.0 * (self._depth(origins, rows) - self.targets[rows])
         pixels = project_points(origins[:, self.joint_segments], self.camera[rows])
         return (self.joint_weight * (pixels - self.targets[rows])).reshape(full.shape[0], -1)
+
+    def _depth(self, origins: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """(N, K) the joints' depths along each row's camera axis (metres)."""
+        camera = self.camera[rows]
+        points = origins[:, self.joint_segments]
+        return (points * camera.R[:, None, 2]).sum(-1) + camera.t[:, None, 2]
 
     def residual(self, full, selections=None, rows=None) -> torch.Tensor:
         if rows is None:
@@ -98,24 +119,36 @@ class JointPixelFit(PriorFit):
 
 
 def with_joint_rows(
-    fit: PriorFit, targets: torch.Tensor, joints: list[str], pose: int, weight: float
+    fit: PriorFit,
+    targets: torch.Tensor,
+    joints: list[str],
+    pose: int,
+    weight: float,
+    depth: bool = False,
 ) -> JointPixelFit:
     """Turn a built problem (a :class:`PriorFit` or a subclass, e.g. a bend fit) into a
-    :class:`JointPixelFit` of its own class, with the joints' target pixels (B, K, 2)."""
+    :class:`JointPixelFit` of its own class, with the joints' target pixels (B, K, 2) or, with
+    ``depth``, their target depths along the camera axis (B, K)."""
     fit.__class__ = type(f"JointPixel{type(fit).__name__}", (JointPixelFit, type(fit)), {})
-    fit._attach(targets, joints, pose, weight)
+    fit._attach(targets, joints, pose, weight, depth)
     return fit
 
 
-def attach(fit: PriorFit, subjects, joints: list[str], pose: int, weight: float) -> JointPixelFit:
+def attach(
+    fit: PriorFit, subjects, joints: list[str], pose: int, weight: float, depth: bool = False
+) -> JointPixelFit:
     """Turn a built problem into a :class:`JointPixelFit` for ``subjects`` (their truth)."""
     targets = []
     for s in subjects:
         world = torch.tensor(
             [[s.truth["joints_world"][f"pose{pose}"][j] for j in joints]], dtype=torch.float64
         )
-        targets.append(project_points(world, s.camera.to(dtype=torch.float64))[0])
-    return with_joint_rows(fit, torch.stack(targets), joints, pose, weight)
+        camera = s.camera.to(dtype=torch.float64)
+        if depth:
+            targets.append(((world * camera.R[:, None, 2]).sum(-1) + camera.t[:, None, 2])[0])
+        else:
+            targets.append(project_points(world, camera)[0])
+    return with_joint_rows(fit, torch.stack(targets), joints, pose, weight, depth)
 
 
 def main() -> None:
@@ -125,6 +158,7 @@ def main() -> None:
     p.add_argument("--joints", default="l_knee", help="comma-separated design.md joint names")
     p.add_argument("--pose", type=int, default=3)
     p.add_argument("--weight", type=float, default=2.0)
+    p.add_argument("--depth", action="store_true", help="pin the joints' depths, not pixels")
     p.add_argument("--config", default=str(REPO_ROOT / "configs" / "benchmark.yaml"))
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = p.parse_args()
@@ -141,7 +175,7 @@ def main() -> None:
         fit = build(model, person, config, facts)
         if not isinstance(fit, PriorFit):  # no prior weighed: a PriorFit without one
             fit = PriorFit(fit.model, fit.person, fit.options, fit.scale_bounds)
-        return attach(fit, current["subjects"], joints, args.pose, args.weight)
+        return attach(fit, current["subjects"], joints, args.pose, args.weight, args.depth)
 
     run_module._fit, run_module.build_problem = fit_with_subjects, build_with_joints
     spec = importlib.util.spec_from_file_location("benchmark", REPO_ROOT / "tools" / "benchmark.py")

@@ -73,3 +73,38 @@ def test_joint_rows_are_the_weighted_pixel_errors_and_their_jacobian(tool, model
     # dense in the solver's blocks: no block holds the joint rows
     for rows, _ in fit.jacobian_blocks(free):
         assert rows.stop <= size
+
+
+def test_depth_rows_are_the_weighted_depth_errors_in_centimetres(tool, model, subject):
+    person = person_data_from_masks(segment_subjects([subject]), stack_cameras([subject.camera]))
+    fit = PriorFit(model, person, prior_options=PriorOptions(pose_weight=0.5))
+    size = fit.residual_layout.size
+    targets = torch.tensor([[3.0, 3.2]], dtype=torch.float64)
+    fit = tool.with_joint_rows(fit, targets, ["l_hip", "r_shoulder"], 4, 1.5, depth=True)
+    assert fit.residual_layout.size == size + 2
+    g = torch.Generator().manual_seed(9)
+    x = fit.initial_params() + 0.03 * torch.randn(
+        1, fit.num_params, generator=g, dtype=torch.float64
+    )
+    # the rows: 1.5 * (the joints' camera-frame z in posture 4 - the targets) / 1 cm
+    _, origins = fit.pose_world(x, 4, torch.tensor([0]))
+    segs = [model.template.joints[j] for j in ("l_hip", "r_shoulder")]
+    camera = fit.camera
+    z = (origins[0, segs] @ camera.R[0].T + camera.t[0])[:, 2]
+    sel = fit.select(x)
+    r = fit.residual(x, sel)
+    torch.testing.assert_close(r[0, size:], 1.5 * 100.0 * (z - targets[0]))
+    free = fit.stage_indices(["all"], joints=True, root=True)
+    jac, r2 = fit.jacobian_and_residual(x, free, sel)
+    torch.testing.assert_close(r2, r)
+    h = 1e-6
+    for k in range(0, free.numel(), 5):
+        plus, minus = x.clone(), x.clone()
+        plus[0, free[k]] += h
+        minus[0, free[k]] -= h
+        fd = (
+            fit.joint_residual(plus, torch.tensor([0]))
+            - fit.joint_residual(minus, torch.tensor([0]))
+        ) / (2 * h)
+        torch.testing.assert_close(jac[0, size:, k], fd[0], atol=1e-4, rtol=1e-6)
+    assert float(jac[0, size:].abs().sum()) > 0
