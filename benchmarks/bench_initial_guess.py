@@ -130,8 +130,8 @@ def main(argv: list[str] | None = None) -> int:
             config, masks_t, torch.stack(shadows), stack_cameras([s.camera for s in batch]), dtype
         )
         fit = SilhouetteFit(
-        model, person, config.fit, (config.model.scale_min, config.model.scale_max)
-    )
+            model, person, config.fit, (config.model.scale_min, config.model.scale_max)
+        )
         t0 = time.perf_counter()
         x_parts, info = parts_start(fit, masks_t, torch.stack(images), config.parts)
         guess_s = time.perf_counter() - t0

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from torchfit.camera import project_points
+from torchfit.camera import project_points, world_to_camera
 from torchfit.fit.prior import PriorFit
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -78,15 +78,10 @@ class JointPixelFit(PriorFit):
         one = torch.zeros(1, dtype=torch.long, device=full.device)  # pose no vertex but one
         _, origins = self.pose_world(full, self.joint_pose, rows, one)
         if self.joint_depth:
-            return self.joint_weight * 100.0 * (self._depth(origins, rows) - self.targets[rows])
+            depth = world_to_camera(origins[:, self.joint_segments], self.camera[rows])[..., 2]
+            return self.joint_weight * 100.0 * (depth - self.targets[rows])
         pixels = project_points(origins[:, self.joint_segments], self.camera[rows])
         return (self.joint_weight * (pixels - self.targets[rows])).reshape(full.shape[0], -1)
-
-    def _depth(self, origins: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        """(N, K) the joints' depths along each row's camera axis (metres)."""
-        camera = self.camera[rows]
-        points = origins[:, self.joint_segments]
-        return (points * camera.R[:, None, 2]).sum(-1) + camera.t[:, None, 2]
 
     def residual(self, full, selections=None, rows=None) -> torch.Tensor:
         if rows is None:
@@ -145,7 +140,7 @@ def attach(
         )
         camera = s.camera.to(dtype=torch.float64)
         if depth:
-            targets.append(((world * camera.R[:, None, 2]).sum(-1) + camera.t[:, None, 2])[0])
+            targets.append(world_to_camera(world, camera)[0, :, 2])
         else:
             targets.append(project_points(world, camera)[0])
     return with_joint_rows(fit, torch.stack(targets), joints, pose, weight, depth)

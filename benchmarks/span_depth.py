@@ -105,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
                 "measurements": json.loads((folder / "measurements.json").read_text()),
             }
             name = fitted["params"]["template"]
-            model = models.setdefault(name, BodyModel(name))
+            if name not in models:  # one model per template, not per subject
+                models[name] = BodyModel(name)
+            model = models[name]
             rows[line["subject"]] = (
                 line["status"],
                 subject_row(data / line["subject"], fitted, model),

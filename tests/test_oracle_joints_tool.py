@@ -3,6 +3,7 @@ without the shipped bend marks (whose rows the joint rows must follow)."""
 
 import pytest
 import torch
+from central_differences import perturbed_start, residual_differences
 from scripts import load_script
 from template_subjects import make_template_subject, segment_subjects
 
@@ -43,10 +44,7 @@ def test_joint_rows_are_the_weighted_pixel_errors_and_their_jacobian(tool, model
     assert fit.residual_mask().shape[1] == size + 4
     assert fit.loss_units().shape[1] == size + 4
     assert bool(torch.isinf(fit.loss_units()[0, size:]).all())  # least squares
-    g = torch.Generator().manual_seed(5)
-    x = fit.initial_params() + 0.03 * torch.randn(
-        1, fit.num_params, generator=g, dtype=torch.float64
-    )
+    x = perturbed_start(fit, 0.03, 5)
     # the rows: 2 * (the joints' pixels in posture 3 - the targets)
     _, origins = fit.pose_world(x, 3, torch.tensor([0]))
     segs = [model.template.joints[j] for j in ("l_knee", "l_ankle")]
@@ -59,16 +57,9 @@ def test_joint_rows_are_the_weighted_pixel_errors_and_their_jacobian(tool, model
     jac, r2 = fit.jacobian_and_residual(x, free, sel)
     assert jac.shape[1] == r.shape[1] == size + 4
     torch.testing.assert_close(r2, r)
-    h = 1e-6
-    for k in range(0, free.numel(), 7):
-        plus, minus = x.clone(), x.clone()
-        plus[0, free[k]] += h
-        minus[0, free[k]] -= h
-        fd = (
-            fit.joint_residual(plus, torch.tensor([0]))
-            - fit.joint_residual(minus, torch.tensor([0]))
-        ) / (2 * h)
-        torch.testing.assert_close(jac[0, size:, k], fd[0], atol=1e-4, rtol=1e-6)
+    at = list(range(0, free.numel(), 7))
+    fd = residual_differences(fit, x, sel, slice(size, None), free[at])
+    torch.testing.assert_close(jac[:, size:, at], fd, atol=1e-4, rtol=1e-6)
     assert float(jac[0, size:].abs().sum()) > 0
     # dense in the solver's blocks: no block holds the joint rows
     for rows, _ in fit.jacobian_blocks(free):
@@ -82,10 +73,7 @@ def test_depth_rows_are_the_weighted_depth_errors_in_centimetres(tool, model, su
     targets = torch.tensor([[3.0, 3.2]], dtype=torch.float64)
     fit = tool.with_joint_rows(fit, targets, ["l_hip", "r_shoulder"], 4, 1.5, depth=True)
     assert fit.residual_layout.size == size + 2
-    g = torch.Generator().manual_seed(9)
-    x = fit.initial_params() + 0.03 * torch.randn(
-        1, fit.num_params, generator=g, dtype=torch.float64
-    )
+    x = perturbed_start(fit, 0.03, 9)
     # the rows: 1.5 * (the joints' camera-frame z in posture 4 - the targets) / 1 cm
     _, origins = fit.pose_world(x, 4, torch.tensor([0]))
     segs = [model.template.joints[j] for j in ("l_hip", "r_shoulder")]
@@ -97,14 +85,7 @@ def test_depth_rows_are_the_weighted_depth_errors_in_centimetres(tool, model, su
     free = fit.stage_indices(["all"], joints=True, root=True)
     jac, r2 = fit.jacobian_and_residual(x, free, sel)
     torch.testing.assert_close(r2, r)
-    h = 1e-6
-    for k in range(0, free.numel(), 5):
-        plus, minus = x.clone(), x.clone()
-        plus[0, free[k]] += h
-        minus[0, free[k]] -= h
-        fd = (
-            fit.joint_residual(plus, torch.tensor([0]))
-            - fit.joint_residual(minus, torch.tensor([0]))
-        ) / (2 * h)
-        torch.testing.assert_close(jac[0, size:, k], fd[0], atol=1e-4, rtol=1e-6)
+    at = list(range(0, free.numel(), 5))
+    fd = residual_differences(fit, x, sel, slice(size, None), free[at])
+    torch.testing.assert_close(jac[:, size:, at], fd, atol=1e-4, rtol=1e-6)
     assert float(jac[0, size:].abs().sum()) > 0

@@ -69,9 +69,8 @@ def _predict(
     """The prediction before the limits: the last pose plus ``velocity_damping`` times its
     velocity, its root turned about the vertical by ``turn_velocity`` times the turn rate
     ``rate`` (B,) (radians per frame) less ``turn_dead_deg``."""
-    pred = prev + options.velocity_damping * (prev - prev2)
+    pred = prev + options.velocity_damping * (prev - prev2)  # a new tensor, written below
     if options.turn_velocity:
-        pred = pred.clone()
         turn = torch.sign(rate) * (rate.abs() - math.radians(options.turn_dead_deg)).clamp_min(0)
         pred[:, 3:6] = turn_about_vertical(prev[:, 3:6], options.turn_velocity * turn)
     return pred
