@@ -37,9 +37,11 @@ def subjects(tmp_path_factory, model):
 
 
 def segmented(subjects) -> torch.Tensor:
-    """(B, 6, H, W) silhouettes of the subjects (the colour test alone, no outline test: these
-    tests are about the fit, on the silhouettes they were written for)."""
-    return segment_subjects(subjects, edge_width=0)
+    """(B, 6, H, W) silhouettes of the subjects (the colour test alone, no outline test, the
+    largest region of the opened mask: these tests are about the fit, on the silhouettes they
+    were written for; ``join_parts`` gives the tall subject back a shin in posture 1 and a
+    forearm in posture 2)."""
+    return segment_subjects(subjects, edge_width=0, join_parts=False)
 
 
 def problem(model, subjects, fit_config=None):

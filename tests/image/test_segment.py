@@ -39,11 +39,13 @@ def test_clean_mask_opening_largest_region_closing_and_holes() -> None:
     # image 3 stays empty
     person = torch.zeros(40, 40, dtype=torch.bool)
     person[5:35, 5:30] = True
-    out = clean_mask(m, open_kernel=3, close_kernel=5, fill_holes=True)
+    # join_parts=False: the largest region of the opened mask (the smaller region 1 px away
+    # would join the person across the closing's reach)
+    out = clean_mask(m, open_kernel=3, close_kernel=5, fill_holes=True, join_parts=False)
     for i in range(3):
         assert torch.equal(out[i, 0], person), i
     assert not bool(out[3].any())
-    kept = clean_mask(m, 3, 5, fill_holes=False)
+    kept = clean_mask(m, 3, 5, fill_holes=False, join_parts=False)
     assert torch.equal(kept[0, 0], person) and torch.equal(kept[1, 0], person)
     assert torch.equal(kept[2, 0], m[2, 0])  # the hole stays
     both = clean_mask(m, 3, 5, fill_holes=True, largest_region=False)[0, 0]
@@ -52,6 +54,25 @@ def test_clean_mask_opening_largest_region_closing_and_holes() -> None:
     assert torch.equal(raw, m)  # every step can be switched off
     with pytest.raises(ShapeError, match="masks: expected shape"):
         clean_mask(torch.zeros(40, 40, dtype=torch.bool))
+
+
+def test_clean_mask_keeps_a_part_the_opening_cut_off_within_the_closing_reach() -> None:
+    m = torch.zeros(2, 1, 40, 60, dtype=torch.bool)
+    m[:, 0, 5:35, 5:25] = True  # the body
+    m[:, 0, 10:12, 25:30] = True  # a link two pixels thin: the 3x3 opening removes it
+    m[0, 0, 8:14, 30:50] = True  # the forearm beyond it, 5 px from the body once opened
+    m[1, 0, 8:14, 34:50] = True  # image 1: the forearm 9 px away, beyond a 7x7 closing
+    m[:, 0, 30:34, 54:58] = True  # a blob 16 px below the forearm, 29 px from the body
+    joined = clean_mask(m, 3, 7, fill_holes=False)
+    assert bool(joined[0, 0, 8:14, 30:50].all())  # the forearm stays with the body ...
+    assert bool(joined[0, 0, 10:12, 25:30].all())  # ... and the closing restores the link
+    assert not bool(joined[1, 0, 8:14, 34:50].any())
+    for i in range(2):
+        assert bool(joined[i, 0, 5:35, 5:25].all())
+        assert not bool(joined[i, 0, 30:34, 54:58].any())
+    alone = clean_mask(m, 3, 7, fill_holes=False, join_parts=False)
+    assert not bool(alone[0, 0, 8:14, 30:50].any())  # the largest region of the opened mask
+    assert bool(alone[0, 0, 5:35, 5:25].all())
 
 
 def test_clean_mask_fills_only_small_holes_with_max_hole_area() -> None:

@@ -60,6 +60,11 @@ class SegmentationOptions:
     open_kernel: int = 3
     close_kernel: int = 7
     largest_region: bool = True  # keep only the largest region (one person); false keeps all
+    # find that region after the closing: a part of the person that the opening cut off (an
+    # arm whose link to the body was a thin strip before a background of its own colour)
+    # stays when it is within the closing's reach of the body; false takes the largest region
+    # of the opened mask (benchmarks/RESULTS.md, "A limb cut off by the opening")
+    join_parts: bool = True
     fill_holes: bool = True
     # largest hole filled, as a fraction of the silhouette's area (holes included); None fills
     # every hole. A small value keeps the gap between the legs when a shadow closes it below
@@ -118,6 +123,7 @@ def clean_mask(
     fill_holes: bool = True,
     largest_region: bool = True,
     max_hole_area: float | None = None,
+    join_parts: bool = True,
 ) -> torch.Tensor:
     """Opening, largest 8-connected region, closing, optional hole filling (paper, section 4).
 
@@ -131,6 +137,11 @@ def clean_mask(
         largest_region: keep only the largest region (the paper's one-person assumption);
             ``False`` keeps every region that survives the opening (for scenes with several
             people, e.g. for scoring against multi-person ground truth).
+        join_parts: with ``largest_region``, find the largest region of the opened mask
+            after a closing by ``close_kernel`` and keep the opened pixels in it: the parts
+            the opening cut apart stay together when a closing bridges the gap (a forearm
+            whose thin link to the body the opening removed); without it, the largest region
+            of the opened mask alone.
 
     Returns:
         ``(B, 1, H, W)`` bool, at most one region per image with ``largest_region`` (empty
@@ -150,9 +161,10 @@ def clean_mask(
     if open_kernel > 1:
         out = binary_opening(out, open_kernel)
     if largest_region:
-        host = out[:, 0].cpu().numpy()
-        kept = np.stack([largest_component(m) for m in host])
-        out = torch.from_numpy(kept).to(masks.device).unsqueeze(1)
+        joined = binary_closing(out, close_kernel) if join_parts and close_kernel > 1 else out
+        host = joined[:, 0].cpu().numpy()
+        kept = torch.from_numpy(np.stack([largest_component(m) for m in host]))
+        out = out & kept.to(masks.device).unsqueeze(1)
     if close_kernel > 1:
         out = binary_closing(out, close_kernel)
     if fill_holes:
@@ -229,6 +241,7 @@ def segment(
         options.fill_holes,
         options.largest_region,
         options.max_hole_area,
+        options.join_parts,
     )
     if options.edge_width < 0:
         raise ConfigError(f"segmentation.edge_width: expected >= 0, got {options.edge_width}")

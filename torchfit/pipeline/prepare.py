@@ -328,6 +328,7 @@ def _chroma_key(
         segmentation.fill_holes,
         segmentation.largest_region,
         segmentation.max_hole_area,
+        segmentation.join_parts,
     )
     if options.despill:
         images = despill(images, masks, key, options.spill_px)
