@@ -55,9 +55,10 @@ class JointPixelFit(PriorFit):
         layout = self.residual_layout
         self.own_size = layout.size
         # the last entries of the layout: after a bend fit's own marks, else after e_A
-        last = "num_marks" if hasattr(self, "_mark_rows") else "num_pose_prior"
+        self.joint_block = "marks" if hasattr(self, "_mark_rows") else "pose_prior"
+        count = f"num_{self.joint_block}"
         self.residual_layout = dataclasses.replace(
-            layout, **{last: getattr(layout, last) + self.num_joint_rows}
+            layout, **{count: getattr(layout, count) + self.num_joint_rows}
         )
 
     def subset(self, index: list[int]) -> JointPixelFit:
@@ -91,8 +92,7 @@ class JointPixelFit(PriorFit):
 
     def jacobian_blocks(self, free: torch.Tensor) -> list[tuple[slice, torch.Tensor]]:
         out = []
-        layout = self.residual_layout
-        held = layout.marks if hasattr(self, "_mark_rows") else layout.pose_prior
+        held = getattr(self.residual_layout, self.joint_block)
         for rows, cols in super().jacobian_blocks(free):
             if rows == held:  # the problem's own last rows; the joint rows stay dense
                 rows = slice(held.start, held.stop - self.num_joint_rows)

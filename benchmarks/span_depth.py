@@ -32,9 +32,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-import yaml
 
 from torchfit.body import BodyModel
+from torchfit.camera import Camera, world_to_camera
+from torchfit.io import load_camera
 
 #: the joints whose depth is the torso's
 TORSO = ("l_hip", "r_hip", "l_shoulder", "r_shoulder")
@@ -59,26 +60,28 @@ def posed_joints(model: BodyModel, params: dict, pose: str) -> dict[str, np.ndar
     return {k: v[0].numpy() - np.array([0.0, 0.0, floor]) for k, v in joints.items()}
 
 
+def _mean_depth(points: list, camera: Camera) -> float:
+    """Mean depth along the camera's axis of world points (metres)."""
+    world = torch.tensor(np.asarray(points, dtype=np.float64)[None], dtype=camera.R.dtype)
+    return float(world_to_camera(world, camera)[0, :, 2].mean())
+
+
 def subject_row(subject: Path, fitted: dict, model: BodyModel) -> dict[str, float]:
     """The four figures of one subject (see the module docstring); ``fitted`` holds its
     ``params`` and ``measurements``, ``model`` is the fit's template body."""
     truth = json.loads((subject / "truth.json").read_text())
-    camera = yaml.safe_load((subject / "camera.yaml").read_text())
-    rotation, translation = np.array(camera["R"]), np.array(camera["t"])
-    focal = float(np.array(camera["K"])[0, 0])
+    camera = load_camera(subject / "camera.yaml")
+    focal = float(camera.K[0, 0, 0])
     joints = truth["joints_world"]["pose4"]
-    depth = np.mean(
-        [
-            (rotation @ np.array(joints[k]) + translation)[2]
-            for k in ("l_wrist", "r_wrist", "l_shoulder", "r_shoulder")
-        ]
+    depth = _mean_depth(
+        [joints[k] for k in ("l_wrist", "r_wrist", "l_shoulder", "r_shoulder")], camera
     )
     mask = cv2.imread(str(subject / "truth_masks" / "pose4.png"), cv2.IMREAD_GRAYSCALE) > 127
     columns = np.nonzero(mask.any(0))[0]
     width_m = (columns.max() - columns.min() + 1) * depth / focal
     posed = posed_joints(model, fitted["params"], "pose4")
-    fit_depth = np.mean([(rotation @ posed[k] + translation)[2] for k in TORSO])
-    true_depth = np.mean([(rotation @ np.array(joints[k]) + translation)[2] for k in TORSO])
+    fit_depth = _mean_depth([posed[k] for k in TORSO], camera)
+    true_depth = _mean_depth([joints[k] for k in TORSO], camera)
     span = truth["arm_span_m"]
     return {
         "span": 100 * (fitted["measurements"]["arm_span_m"] / span - 1),
