@@ -84,6 +84,17 @@ def test_outliers_name_the_nearer_end_of_the_range():
     assert proportion_outliers({**body, "thigh_m": 0.5, "forearm_m": 0.3}, ranges) == []
 
 
+def test_the_shoulder_width_is_judged_by_the_hard_limits_only():
+    ranges = {"shoulder_width_m": (0.175, 0.221), "forearm_m": (0.125, 0.155)}
+    broad = {"height_m": 1.62, "shoulder_width_m": 0.3619, "forearm_m": 0.23}  # 0.2234
+    assert proportion_outliers(broad, ranges) == []
+    flagged = proportion_outliers(broad, ranges, exempt=())
+    assert [o.key for o in flagged] == ["shoulder_width_m"]
+    # the hard limits still hold it: 0.30 of the height is no human shoulder width
+    assert proportion_flags({"height_m": 1.62, "shoulder_width_m": 0.486})
+    assert not proportion_flags(broad)
+
+
 def test_committed_table_matches_the_derivation(shared_data):
     spec = importlib.util.spec_from_file_location("mp", ROOT / "tools" / "make_proportions.py")
     module = importlib.util.module_from_spec(spec)
