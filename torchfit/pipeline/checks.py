@@ -65,7 +65,7 @@ MARGINS: dict[str, float | tuple[float, float]] = {
 #: Proportions the population range does not judge, only the hard limits: the facing postures'
 #: outline shows them. The fitted shoulder width beats the regression on the true height on
 #: every development and test set, and on the development sets every flag the 1st–99th
-#: percentiles raised on it (12 over the runs of 2026-11-25 to 28) was a body whose true
+#: percentiles raised on it (12 over 45 runs of 2026-11-25 to 28) was a body whose true
 #: shoulders are that broad, fitted within 1.5 % (benchmarks/RESULTS.md, "The judge and broad
 #: shoulders").
 SHOWN_BY_OUTLINE: frozenset[str] = frozenset({"shoulder_width_m"})
