@@ -1,5 +1,4 @@
-"""CDnet pixel counts and precision / recall / F.
-"""
+"""CDnet pixel counts and precision / recall / F."""
 
 from __future__ import annotations
 

@@ -45,7 +45,6 @@ def random_blob(rng: np.random.Generator, h: int, w: int, level: float = 0.52) -
     raise RuntimeError("no blob")
 
 
-
 #: Shadow-test options under which colour alone decides (no texture test, no noise term): what
 #: the shin scenes below need for the shins to pass as shadow.
 COLOUR_SHADOW = dict(

@@ -1,5 +1,4 @@
-"""Ordered outer contours against OpenCV's ``findContours``.
-"""
+"""Ordered outer contours against OpenCV's ``findContours``."""
 
 from __future__ import annotations
 

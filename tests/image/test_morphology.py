@@ -1,5 +1,4 @@
-"""Opening and closing against kornia; hole filling and largest region against their former copies.
-"""
+"""Opening and closing against kornia; hole filling and largest region against former copies."""
 
 from __future__ import annotations
 

@@ -176,8 +176,10 @@ class ContourSelection:
             sil[i] = packed
         marks = self.marks
         if other.marks is not None:
-            base = self.marks if self.marks is not None else other.marks.new_zeros(
-                self.samples.shape[0], *other.marks.shape[1:]
+            base = (
+                self.marks
+                if self.marks is not None
+                else other.marks.new_zeros(self.samples.shape[0], *other.marks.shape[1:])
             )
             marks = base.index_copy(0, at, other.marks)
         return ContourSelection(
