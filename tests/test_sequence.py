@@ -32,7 +32,7 @@ def test_asf_amc_and_bvh_give_the_same_legs():
     amc = load_mocap(CMU / "01_01.amc")
     bvh = load_mocap(CMU / "01_01.bvh")
     assert bvh.num_frames == amc.num_frames + 1
-    for name in ("l_hip", "l_knee", "l_ankle", "r_knee"):
+    for name in ("l_hip", "l_knee", "l_ankle", "r_knee", "l_toe", "r_toe"):
         gap = np.linalg.norm(amc.joints[name][500] - bvh.joints[name][501])
         assert gap < 0.02, (name, gap)
 
@@ -51,6 +51,25 @@ def test_retarget_keeps_the_limb_directions():
         np.testing.assert_allclose(rot @ down, want / np.linalg.norm(want), atol=1e-6)
 
 
+@needs_cmu
+def test_retarget_points_the_feet_along_the_capture():
+    """With the body's neutral foot directions, each foot's ankle->toe line turns onto the
+    capture's ankle->toe-base line; without them the feet are left alone."""
+    clip = load_mocap(CMU / "01_01.bvh")
+    neutral = {"l": np.array([0.0, -0.96, -0.28]), "r": np.array([0.0, -0.96, -0.28])}
+    neutral = {k: v / np.linalg.norm(v) for k, v in neutral.items()}
+    for index in (300, 420, 1500):  # standing, the jump's take-off, later
+        joints = {k: v[index] for k, v in clip.joints.items()}
+        frame, local = retarget(joints, neutral)
+        for side in ("l", "r"):
+            foot = local[f"{side}_thigh"] @ local[f"{side}_shank"] @ local[f"{side}_foot"]
+            want = joints[f"{side}_toe"] - joints[f"{side}_ankle"]
+            np.testing.assert_allclose(
+                frame @ foot @ neutral[side], want / np.linalg.norm(want), atol=1e-9
+            )
+        assert "l_foot" not in retarget(joints)[1]
+
+
 @pytest.mark.slow
 @needs_cmu
 def test_make_sequence_and_track_it(tmp_path):
@@ -66,6 +85,12 @@ def test_make_sequence_and_track_it(tmp_path):
     assert len(list((seq / "frames").glob("*.png"))) == 4
     for name in ("camera.yaml", "truth.json", "synth.json", "poses/pose6.png"):
         assert (out / "subject" / name).is_file(), name
+    # these frames stand on the floor: the lower ankle as high as in the body's own standing
+    # posture (the feet flat, the soles on the floor), not lifted or pointed
+    standing = json.loads((out / "subject" / "truth.json").read_text())["joints_world"]["pose1"]
+    flat = min(standing["l_ankle"][2], standing["r_ankle"][2])
+    for frame in truth["joints_world"]:
+        assert abs(min(frame["l_ankle"][2], frame["r_ankle"][2]) - flat) < 0.02, frame
     # track it with the template's shape and the body's true segment lengths
     model_dir = tmp_path / "model"
     model_dir.mkdir()

@@ -393,3 +393,34 @@ def test_track_tool_names_an_unreadable_frame_with_exit_code_4(model, camera, tm
         torch.set_num_threads(before)
     assert code == 4
     assert "000001.png" in capsys.readouterr().err
+
+
+def test_joint_errors_split_along_and_across_the_camera_ray():
+    """eval.json's split: a joint moved along the camera's ray through it, or across it."""
+    from torchfit.camera import Camera, look_at
+    from torchfit.measurements import JOINT_NAMES
+    from torchfit.pipeline.track import joint_errors
+
+    centre = torch.tensor([[0.5, -4.0, 1.5]], dtype=torch.float64)
+    R, t = look_at(centre, torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64))
+    K = torch.tensor([[800.0, 0.0, 360.0], [0.0, 800.0, 288.0], [0.0, 0.0, 1.0]])
+    camera = Camera(K=K, dist=torch.zeros(5), R=R[0], t=t[0], image_size=(720, 576))
+    rng = np.random.default_rng(3)
+    truth = [{n: list(rng.uniform(-0.5, 0.5, 3) + [0, 0, 1]) for n in JOINT_NAMES}]
+    ray = {n: np.subtract(truth[0][n], centre[0].numpy()) for n in JOINT_NAMES}
+    ray = {n: v / np.linalg.norm(v) for n, v in ray.items()}
+    away = [{n: list(np.add(truth[0][n], 0.02 * ray[n])) for n in JOINT_NAMES}]
+    e = joint_errors(away, truth, camera)
+    assert e["mean_joint_error_mm"] == pytest.approx(20.0)
+    assert e["along_ray_mm"] == pytest.approx(20.0) and e["along_ray_signed_mm"] == pytest.approx(
+        20.0
+    )
+    assert e["across_ray_mm"] == pytest.approx(0.0, abs=1e-9)
+    side = {n: np.cross(ray[n], [0.0, 0.0, 1.0]) for n in JOINT_NAMES}
+    side = {n: v / np.linalg.norm(v) for n, v in side.items()}
+    across = [{n: list(np.add(truth[0][n], 0.03 * side[n])) for n in JOINT_NAMES}]
+    e = joint_errors(across, truth, camera)
+    assert e["across_ray_mm"] == pytest.approx(30.0) and e["along_ray_mm"] == pytest.approx(
+        0.0, abs=1e-9
+    )
+    assert "along_ray_mm" not in joint_errors(across, truth)

@@ -32,6 +32,7 @@ from torchfit.camera import (
     Camera,
     project_points,
     stack_cameras,
+    world_to_camera,
 )
 from torchfit.errors import DataError
 from torchfit.image import SegmentationOptions, fit_background, segment
@@ -281,7 +282,7 @@ def track_sequences(
             "ms_per_frame": float(np.mean([r.ms for r in recs])),
         }
         if s.truth is not None:
-            summary.update(joint_errors(frames_doc, s.truth[: len(recs)]))
+            summary.update(joint_errors(frames_doc, s.truth[: len(recs)], s.camera))
             write_json(out / "eval.json", summary)
         summaries.append(summary)
     return summaries
@@ -305,23 +306,36 @@ def _write_overlays(model, scales, seq, background, x, recs, out, config) -> Non
         write_image(out / "overlay" / f"{f:06d}.png", fit_overlay(rgb, person, mask, label))
 
 
-def joint_errors(tracked: list[dict], truth: list[dict]) -> dict:
-    """Mean per-joint position error (mm) over frames, head_top excluded."""
+def joint_errors(tracked: list[dict], truth: list[dict], camera: Camera | None = None) -> dict:
+    """Mean per-joint position error (mm) over frames, head_top excluded.
+
+    With the sequence's ``camera`` it also splits each error along the camera's ray through
+    the true joint (``along_ray_mm``: the depth one view hardly shows, mean of its absolute
+    value; ``along_ray_signed_mm``: negative towards the camera) and across it
+    (``across_ray_mm``: what the image shows).
+    """
     names = [n for n in JOINT_NAMES if n != "head_top"]
-    err = (
-        np.array(
-            [
-                [np.linalg.norm(np.subtract(t[n], f[n])) for n in names]
-                for f, t in zip(tracked, truth, strict=True)
-            ]
-        )
-        * 1000
-    )
-    return {
+    got = np.array([[f[n] for n in names] for f in tracked], dtype=np.float64)
+    want = np.array([[t[n] for n in names] for t in truth], dtype=np.float64)
+    if got.shape != want.shape:
+        raise DataError(f"{len(tracked)} tracked frames against {len(truth)} truth frames")
+    err = np.linalg.norm(got - want, axis=-1) * 1000
+    out = {
         "mean_joint_error_mm": float(err.mean()),
         "per_joint_mm": {n: float(err[:, k].mean()) for k, n in enumerate(names)},
         "per_frame_mm": [round(float(v), 1) for v in err.mean(1)],
     }
+    if camera is not None:
+        cam = camera.to(dtype=torch.float64)
+        a = world_to_camera(torch.from_numpy(got), cam).numpy()
+        b = world_to_camera(torch.from_numpy(want), cam).numpy()
+        ray = b / np.linalg.norm(b, axis=-1, keepdims=True)
+        along = ((a - b) * ray).sum(-1)
+        across = np.linalg.norm(a - b - along[..., None] * ray, axis=-1)
+        out["along_ray_mm"] = float(np.abs(along).mean() * 1000)
+        out["along_ray_signed_mm"] = float(along.mean() * 1000)
+        out["across_ray_mm"] = float(across.mean() * 1000)
+    return out
 
 
 def skeleton_scales(

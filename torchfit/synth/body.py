@@ -61,6 +61,7 @@ SEGMENT_BONES: dict[str, tuple[str, str]] = {
     "forearm": ("lowerarm01.{s}", "wrist.{s}"),
     "thigh": ("upperleg01.{s}", "lowerleg01.{s}"),
     "shank": ("lowerleg01.{s}", "foot.{s}"),
+    "foot": ("foot.{s}", "toe3-1.{s}"),
 }
 
 
@@ -233,6 +234,17 @@ class AnnyBody:
         top = self.head_top_vertex  # None while the constructor looks for it
         joints["head_top"] = vertices[top].copy() if top is not None else vertices[0] * np.nan
         return PosedBody(vertices=vertices, joints=joints)
+
+    def foot_directions(self) -> dict[str, np.ndarray]:
+        """``{"l": (3,), "r": (3,)}``: each foot's unit direction from the ankle to the base
+        of its middle toe in the neutral pose (body frame)."""
+        heads = self._heads(self._world_rotations(self._neutral))
+        out = {}
+        for side, s in (("l", "L"), ("r", "R")):
+            bone, end = (b.format(s=s) for b in SEGMENT_BONES["foot"])
+            d = heads[self.index[end]] - heads[self.index[bone]]
+            out[side] = d / np.linalg.norm(d)
+        return out
 
     @property
     def faces(self) -> np.ndarray:

@@ -6,8 +6,10 @@ takes: the torso frame (from the hips and the neck) and the local rotations of t
 arms, forearms, thighs and shanks, each limb bone pointing where the capture's bone points.
 The elbow and the knee stay hinges: the upper arm (thigh) turns about its long axis so that
 the forearm (shank) bends in its plane; with a straight limb the twist is the smallest
-rotation from the neutral pose. Spine, neck, wrists and feet keep their neutral pose (the
-torso moves as one rigid block).
+rotation from the neutral pose. Given the body's neutral foot directions, each foot turns
+(smallest rotation from where the shank carries it) until its ankle→toe line points along the
+capture's ankle→toe-base line, so a foot standing flat in the capture stands flat on the body.
+Spine, neck and wrists keep their neutral pose (the torso moves as one rigid block).
 """
 
 from __future__ import annotations
@@ -42,6 +44,8 @@ _CMU_JOINTS = {
     "l_wrist": ("LeftHand", "lradius"),
     "r_wrist": ("RightHand", "rradius"),
     "neck": ("Neck1", "thorax"),
+    "l_toe": ("LeftToeBase", "lfoot"),
+    "r_toe": ("RightToeBase", "rfoot"),
 }
 
 # file axes (y up) -> world (z up)
@@ -54,7 +58,7 @@ class MocapClip:
 
     Attributes:
         joints: design.md joint name -> (F, 3) world positions, metres, z up (``back`` is
-            the midpoint of the hips).
+            the midpoint of the hips; ``l_toe`` and ``r_toe`` the bases of the toes).
         frame_time: seconds per frame.
     """
 
@@ -143,16 +147,22 @@ def _hinge(d_upper: np.ndarray, d_lower: np.ndarray, bends_forward: bool) -> np.
     return np.stack([np.cross(y, z), y, z], axis=1)
 
 
-def retarget(joints: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def retarget(
+    joints: dict[str, np.ndarray], feet: dict[str, np.ndarray] | None = None
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """One frame of a clip as the torso frame and the limbs' local rotations.
 
     Args:
         joints: design.md joint name -> (3,) world position of one frame.
+        feet: ``{"l": (3,), "r": (3,)}`` the body's ankle→toe directions in its neutral pose
+            (body frame, :meth:`AnnyBody.foot_directions`); without them the feet keep their
+            neutral pose under the shanks.
 
     Returns:
         (3, 3) torso rotation (body frame to world), and ``{"l_upper_arm", "l_forearm",
-        "l_thigh", "l_shank", "r_…"}`` -> (3, 3) local rotations in the neutral body frame
-        (the ``segments`` argument of :meth:`AnnyBody.pose`).
+        "l_thigh", "l_shank", "r_…"}`` (and ``"l_foot"``, ``"r_foot"`` with ``feet``) -> (3, 3)
+        local rotations in the neutral body frame (the ``segments`` argument of
+        :meth:`AnnyBody.pose`).
     """
     frame = torso_frame(joints)
     out = {}
@@ -169,4 +179,8 @@ def retarget(joints: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.nd
             q_l = _smallest(q_u @ down, d_l) @ q_u
             out[f"{side}_{upper}"] = q_u
             out[f"{side}_{lower}"] = q_u.T @ q_l
+            if feet is not None and lower == "shank":
+                d_f = _unit(frame.T @ (joints[f"{side}_toe"] - joints[f"{side}_ankle"]))
+                q_f = _smallest(_unit(q_l @ feet[side]), d_f) @ q_l
+                out[f"{side}_foot"] = q_l.T @ q_f
     return frame, out

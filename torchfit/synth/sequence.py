@@ -15,8 +15,15 @@ turned about the vertical so that the body faces the camera at its first frame (
 turn within ±25°), its hip trajectory is scaled by the ratio of the body's leg length to the
 capture's, starts above the origin, and is shrunk horizontally (the same factor for the whole
 clip) until it stays within ``max_travel_m`` of its start, so the person stays in the camera's
-view (a clip that travels further is played more in place, the feet sliding somewhat); the
-whole clip is lifted so that the body's lowest point over the clip is on the floor.
+view (a clip that travels further is played more in place, the feet sliding somewhat).
+
+Height: the body stands on the floor as the captured person does. The capture's floor level is
+the 5th percentile, over the whole capture, of its lower ankle's height (the ankle's height
+when a foot stands on the floor); in each frame the body's lowest point is as far above the
+floor as the capture's lower ankle is above that level, times the leg-length ratio (0 while a
+foot is down, the jump's height in the air). The capture's hip height is not used: the body's
+legs are not the captured person's, and lifting the hips by the capture's would float the feet
+or sink them into the floor.
 """
 
 from __future__ import annotations
@@ -55,6 +62,13 @@ def _leg(joints: dict[str, np.ndarray]) -> float:
         for s in ("l", "r")
         for a, b in (("hip", "knee"), ("knee", "ankle"))
     )
+
+
+def _floor_level(joints: dict[str, np.ndarray]) -> float:
+    """The capture's floor level: the 5th percentile of its lower ankle's height over all its
+    frames, metres (see the module doc)."""
+    lower = np.minimum(joints["l_ankle"][:, 2], joints["r_ankle"][:, 2])
+    return float(np.percentile(lower, 5))
 
 
 def make_sequence(
@@ -120,16 +134,19 @@ def make_sequence(
     travel = max(float(np.linalg.norm((j["back"] - origin)[:2])) * ratio for j in clip_joints)
     shrink = min(1.0, max_travel_m / travel) if travel > 0 else 1.0
     squash = np.array([shrink, shrink, 1.0])
+    level = _floor_level(mocap.joints)
+    feet = body.foot_directions()
     posed_frames = []
     for joints in clip_joints:
-        frame, segments = retarget(joints)
+        frame, segments = retarget(joints, feet)
         posed = body.pose({}, segments)
         rot = yaw @ frame
         hips = yaw @ (squash * ratio * (joints["back"] - origin))
         verts = (posed.vertices - posed.joints["back"]) @ rot.T + hips
         named = {k: rot @ (v - posed.joints["back"]) + hips for k, v in posed.joints.items()}
-        posed_frames.append((verts, named))
-    lift = -min(float(v[:, 2].min()) for v, _ in posed_frames)
+        ankle = min(float(joints["l_ankle"][2]), float(joints["r_ankle"][2]))
+        lift = np.array([0.0, 0.0, ratio * max(0.0, ankle - level) - float(verts[:, 2].min())])
+        posed_frames.append((verts + lift, {k: v + lift for k, v in named.items()}))
     seq = out / "sequence"
     empty = render(scene.room, scene.camera, scene.light, None)
     for i in range(cfg.background_frames):
@@ -139,7 +156,6 @@ def make_sequence(
     indices: Iterable[int] = range(frames) if progress is None else progress(range(frames))
     for k in indices:
         verts, named = posed_frames[k]
-        verts = verts + np.array([0.0, 0.0, lift])
         colour, person, _ = render(
             scene.room,
             scene.camera,
@@ -151,12 +167,7 @@ def make_sequence(
         img = finish(colour, rng, gain + np.zeros(3), cfg.noise_sigma)
         _write_png(seq / "frames" / f"{k:06d}.png", img, cfg.png_compression)
         _write_mask(seq / "truth_masks" / f"{k:06d}.png", person, cfg.png_compression)
-        truth.append(
-            {
-                n: [round(float(x), 5) for x in named[n] + np.array([0.0, 0.0, lift])]
-                for n in JOINT_NAMES
-            }
-        )
+        truth.append({n: [round(float(x), 5) for x in named[n]] for n in JOINT_NAMES})
     save_camera(scene.camera, seq / "camera.yaml")
     fps = 1.0 / (mocap.frame_time * step)
     (seq / "truth.json").write_text(json.dumps({"fps": fps, "joints_world": truth}, indent=1))
