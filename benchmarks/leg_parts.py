@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from torchfit.body import BodyModel
+from torchfit.body.measure import neutral_joints as measured_neutral
 
 ROOT = Path(__file__).resolve().parents[1]
 ANSUR = ROOT.parent / "shared" / "data" / "ansur2"
@@ -44,14 +45,10 @@ def _mean_height(joints: dict, name: str) -> float:
 
 
 def neutral_joints(model: BodyModel, scales: dict) -> dict[str, np.ndarray]:
-    """The model's joints in its neutral pose with these segment scales, soles on the floor."""
+    """The model's joints in its neutral pose with these segment scales (``params.json``'s
+    ``segment_scales``), soles on the floor (:func:`torchfit.body.measure.neutral_joints`)."""
     s = torch.tensor([scales[n] for n in model.template.segments], dtype=model.dtype)[None]
-    p = model.zeros(1)
-    pos = model.joint_positions(
-        model(s, p["joint_angles"], p["root_translation"], p["root_rotation"])
-    )
-    floor = min(float(pos["l_sole"][0, 2]), float(pos["r_sole"][0, 2]))
-    return {k: v[0].numpy() - np.array([0.0, 0.0, floor]) for k, v in pos.items()}
+    return {k: v[0].numpy() for k, v in measured_neutral(model, s).items()}
 
 
 def subject_row(model: BodyModel, fitted: dict, truth: dict) -> dict[str, float]:
@@ -92,10 +89,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", required=True, type=Path, help="the set (with truth.json)")
     parser.add_argument("--run", required=True, type=Path, help="a benchmark run folder")
     args = parser.parse_args(argv)
-    rows = {}
+    rows, models = {}, {}
     for path in sorted(args.run.glob("subject_*/params.json")):
         fitted = json.loads(path.read_text())
-        model = BodyModel(fitted["template"], dtype=torch.float64)
+        if fitted["template"] not in models:
+            models[fitted["template"]] = BodyModel(fitted["template"], dtype=torch.float64)
+        model = models[fitted["template"]]
         truth = json.loads((args.data / path.parent.name / "truth.json").read_text())
         rows[path.parent.name] = subject_row(model, fitted, truth)
     if not rows:
