@@ -226,11 +226,13 @@ def test_solver_config_mirrors_lm_options():
     cfg = {f.name: getattr(SolverConfig(), f.name) for f in dataclasses.fields(SolverConfig)}
     opts = {f.name: getattr(LMOptions(), f.name) for f in dataclasses.fields(LMOptions)}
     assert cfg.pop("jacobian") == "autograd"
-    # the fit's own defaults: Huber at 3 px (the solver's stays least squares)
+    # the fit's own defaults: Huber at 3 px, tolerances 1e-6 and a floor of 1 under the
+    # scaling (the solver's stay least squares, 1e-8 and 1e-12, for other problems)
     assert (cfg.pop("loss"), cfg.pop("loss_scale")) == ("huber", 3.0)
     assert (opts.pop("loss"), opts.pop("loss_scale")) == ("linear", 1.0)
+    assert (cfg.pop("ftol"), cfg.pop("xtol"), cfg.pop("min_diag")) == (1e-6, 1e-6, 1.0)
+    assert (opts.pop("ftol"), opts.pop("xtol"), opts.pop("min_diag")) == (1e-8, 1e-8, 1e-12)
     assert cfg == opts
-    assert LMOptions(**cfg) == LMOptions()
     # The pipeline's conversion carries every field, and a stage's own limit.
     custom = SolverConfig(
         ftol=1e-3, max_bad_steps=3, geodesic_acceleration=True, max_nfev=50, loss="cauchy"
@@ -243,6 +245,8 @@ def test_solver_config_mirrors_lm_options():
         max_nfev=50,
         loss="cauchy",
         loss_scale=3.0,
+        xtol=1e-6,
+        min_diag=1.0,
     )
 
 

@@ -184,11 +184,21 @@ class SolverConfig(LMOptions):
             Huber at 3 px on the contour distances e_P (e_M and the barriers stay least
             squares; a stage may set its own ``loss``). Chosen on the development set
             (benchmarks/RESULTS.md, "Robust fit").
+        ftol, xtol: the fit's stopping tolerances (1e-6; the solver's own default, 1e-8, only
+            lengthens a fit whose contour choice moves at every step).
+        min_diag: a floor under Marquardt's scaling ``diag(JᵀJ)`` (1.0 for the fit; the
+            solver's own default is 1e-12): a joint the camera cannot see (the far arm in a
+            side view) has a near-zero Jacobian column and would otherwise get an undamped step
+            of thousands of radians, be rejected again and again, and end the stage falsely
+            with ``xtol``.
     """
 
     jacobian: Literal["autograd", "forward", "reverse", "numeric"] = "autograd"
     loss: Literal["linear", "huber", "cauchy"] = "huber"
     loss_scale: float = 3.0
+    ftol: float = 1e-6
+    xtol: float = 1e-6
+    min_diag: float = 1.0
 
     def lm_options(self, max_iter: int | None = None) -> LMOptions:
         """These options as :class:`LMOptions` (``max_iter`` overrides, for a stage's own
@@ -202,10 +212,22 @@ class SolverConfig(LMOptions):
 def _default_stages() -> tuple[StageOptions, ...]:
     return (
         StageOptions(
-            name="legs_upper_body", scales=("legs", "upper_body"), joints=True, loss="linear"
+            name="legs_upper_body",
+            scales=("legs", "upper_body"),
+            joints=True,
+            max_iter=30,
+            loss="linear",
         ),
-        StageOptions(name="all", scales=("all",), joints=True),
+        StageOptions(name="all", scales=("all",), joints=True, max_iter=50),
     )
+
+
+def _default_prior() -> PriorOptions:
+    return PriorOptions(weight=0.3, pose_weight=0.5)
+
+
+def _default_bends() -> BendOptions:
+    return BendOptions(weight=1.0)
 
 
 @dataclass(frozen=True)
@@ -227,15 +249,22 @@ class FitConfig(FitOptions):
             (:class:`torchfit.fit.prior.PriorOptions`; ``subject.yaml`` gives the facts).
         bends: the bent-joint marks (:class:`torchfit.fit.bends.BendOptions`): the flexed
             knee of posture 3 placed by the axes of the thigh and the shank.
+
+    The defaults are the configuration the accuracy figures of benchmarks/RESULTS.md are
+    measured with (``configs/benchmark.yaml`` states them): stages of 30 and 50 iterations,
+    the population prior at 0.3 and the posture prior at 0.5, the knee's marks at 1.0 and the
+    side views' roll within 0.5 degrees. (The classes of :mod:`torchfit.fit` keep their own
+    neutral defaults, all of these off, for library use.)
     """
 
+    side_roll_max_deg: float | None = 0.5
     stages: tuple[StageOptions, ...] = field(default_factory=_default_stages)
     method: Literal["autograd_lm", "minpack_rendered"] = "autograd_lm"
     initial_guess: Literal["template", "parts"] = "template"
     batch_size: int = 4
     max_contour_rms_px: float = 15.0
-    prior: PriorOptions = field(default_factory=PriorOptions)
-    bends: BendOptions = field(default_factory=BendOptions)
+    prior: PriorOptions = field(default_factory=_default_prior)
+    bends: BendOptions = field(default_factory=_default_bends)
 
 
 @dataclass(frozen=True)
