@@ -252,6 +252,47 @@ def test_frames_read_ahead_in_a_thread_or_a_process_track_alike(model, camera, t
         track_sequences(model, scales, [load_sequence(folder)], [tmp_path / "x"], cfg, ahead="gpu")
 
 
+def test_a_known_start_is_tracked_from_instead_of_the_first_frame_s_own(
+    model, camera, tmp_path, monkeypatch
+):
+    """``track_sequences(start=...)`` tracks the first frame from the caller's pose rows: the
+    silhouettes' own start is not solved, the first frame is the solve from the rows given
+    (here the rendered pose, which it keeps within 2-3 px), and rows of the wrong shape are
+    an error that names the shape expected."""
+    import torchfit.pipeline.track as pipeline
+    from torchfit.pipeline.track import TrackConfig, load_sequence
+
+    folder, _ = _write_sequence(model, camera, tmp_path)
+    cfg = TrackConfig(track=TrackOptions(iterations=3, rounds=1))
+    scales = torch.ones(model.num_segments, 3, dtype=torch.float64)
+    layout = PoseLayout(model, cfg.track)
+    true_first = _pose(model, layout, camera, {"l_shoulder_abduct": 0.3})
+
+    def no_start(*args, **kwargs):
+        raise AssertionError("start_poses was called")
+
+    monkeypatch.setattr(pipeline, "start_poses", no_start)
+    out = tmp_path / "known"
+    pipeline.track_sequences(
+        model, scales, [load_sequence(folder)], [out], cfg, ahead="none", start=true_first[None]
+    )
+    rows = (out / "track.csv").read_text().splitlines()
+    assert len(rows) == 4 and float(rows[1].split(",")[5]) < 1.5  # contour RMS, px
+    import json
+
+    got = json.loads((out / "joints_world.json").read_text())["frames"][0]
+    with torch.no_grad():
+        want = model.joint_positions(
+            model(scales[None], true_first[None, 6:], true_first[None, :3], true_first[None, 3:6])
+        )
+    err = [1000 * np.linalg.norm(np.array(got[n]) - want[n][0].numpy()) for n in got]
+    assert np.mean(err) < 15.0 and max(err) < 25.0, err  # 1 px is about 8 mm here
+    with pytest.raises(ValueError, match=rf"start: expected \(1, {layout.num_params}\)"):
+        pipeline.track_sequences(
+            model, scales, [load_sequence(folder)], [tmp_path / "x"], cfg, start=true_first
+        )
+
+
 @pytest.mark.parametrize("depth", [0.0, 50.0])
 def test_analytic_frame_jacobian_matches_central_differences(model, camera, depth):
     from torchfit.fit.model_contour import EdgeSampler, select_contour

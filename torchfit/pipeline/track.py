@@ -190,6 +190,7 @@ def track_sequences(
     progress=None,
     overlays: bool = False,
     ahead: str = "thread",
+    start: torch.Tensor | None = None,
 ) -> list[dict]:
     """Track ``sequences`` together and write each one's outputs to ``outs``.
 
@@ -206,6 +207,9 @@ def track_sequences(
             distance maps while one is tracked: ``"thread"``, ``"process"`` (a second
             interpreter: it starts in a few seconds, and then overlaps with the tracking far
             better than a thread, which shares the interpreter lock) or ``"none"``.
+        start: (B, P) pose rows (:class:`torchfit.track.PoseLayout`) the first frames are
+            tracked from, where the caller knows them; None: solved from the first frames'
+            silhouettes (:func:`torchfit.track.start_poses`).
 
     Returns:
         Per sequence a summary (frames, statuses, ms per frame, errors with a truth).
@@ -220,6 +224,10 @@ def track_sequences(
         frames, _ = load_frames(s.background, s.camera.image_size)
         backgrounds.append(fit_background(frames, config.segmentation))
     layout = PoseLayout(model, config.track)
+    if start is not None and tuple(start.shape) != (b, layout.num_params):
+        raise ValueError(
+            f"start: expected ({b}, {layout.num_params}) pose rows, got {tuple(start.shape)}"
+        )
     # the next frames are read, segmented and turned into contours and distance maps while
     # this one is tracked
     args = (sequences, backgrounds, cameras, config, model.dtype)
@@ -230,7 +238,9 @@ def track_sequences(
     else:
         raise ValueError(f"ahead: expected 'thread', 'process' or 'none', got {ahead!r}")
     first, first_person = next(ahead)
-    start = start_poses(model, scales, cameras, first, layout, config.track, first_person)
+    if start is None:
+        start = start_poses(model, scales, cameras, first, layout, config.track, first_person)
+    start = start.to(model.dtype)
 
     def frames_again():
         yield first_person
