@@ -252,6 +252,38 @@ def test_frames_read_ahead_in_a_thread_or_a_process_track_alike(model, camera, t
         track_sequences(model, scales, [load_sequence(folder)], [tmp_path / "x"], cfg, ahead="gpu")
 
 
+def test_overlays_are_frames_and_a_video_that_reads_back(model, camera, tmp_path):
+    """``overlays=True`` writes one PNG a frame and ``overlay.avi`` with the same frames
+    (Motion JPEG: the same images up to the codec's loss), and no partial file is left."""
+    from torchfit.io.images import load_frames
+    from torchfit.io.video import read_video, video_frame_count
+    from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences
+
+    folder, _ = _write_sequence(model, camera, tmp_path)
+    cfg = TrackConfig(track=TrackOptions(iterations=2, rounds=1))
+    scales = torch.ones(model.num_segments, 3, dtype=torch.float64)
+    out = tmp_path / "out"
+    track_sequences(model, scales, [load_sequence(folder)], [out], cfg, ahead="none", overlays=True)
+    pngs = sorted((out / "overlay").glob("*.png"))
+    assert len(pngs) == 3 and video_frame_count(out / "overlay.avi") == 3
+    assert not list(out.glob(".*part*"))
+    png = load_frames(pngs, SIZE)[0]
+    video = torch.cat(list(read_video(out / "overlay.avi", SIZE)))
+    assert (video - png).abs().mean() < 0.02  # JPEG's loss, in [0, 1]
+
+
+def test_a_video_writer_refuses_a_frame_of_another_size_and_leaves_no_file(tmp_path):
+    from torchfit.errors import OutputError
+    from torchfit.io.video import VideoWriter
+
+    path = tmp_path / "v.avi"
+    with pytest.raises(OutputError, match="frame of 32x16"):
+        with VideoWriter(path, 25.0) as video:
+            video.write(np.zeros((24, 32, 3), np.uint8))
+            video.write(np.zeros((16, 32, 3), np.uint8))
+    assert not path.exists() and not list(tmp_path.iterdir())
+
+
 def test_a_known_start_is_tracked_from_instead_of_the_first_frame_s_own(
     model, camera, tmp_path, monkeypatch
 ):

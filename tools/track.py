@@ -8,7 +8,8 @@ scales, which stay fixed). Each ``SEQ_DIR`` holds ``camera.yaml``, ``background/
 ``frames/000000.png`` … (or ``--video FILE``, one per sequence) and optionally ``truth.json``.
 Several sequences are tracked together, one frame per batch row. Writes per sequence
 ``OUT_DIR/<k>_<name>/`` (``OUT_DIR`` itself for a single sequence): ``joints_world.json``,
-``motion.bvh``, ``track.csv``, ``overlay/`` with ``--overlays`` and, with a truth,
+``motion.bvh``, ``track.csv``, ``overlay/`` and ``overlay.avi`` with ``--overlays`` and, with
+a truth,
 ``eval.json``; TensorBoard scalars in ``OUT_DIR/tb``.
 
 Exit codes: 0 ok, 1 a sequence lost frames (status ``uncertain``), 2 bad arguments or config,
@@ -61,7 +62,9 @@ def main(argv: list[str] | None = None) -> int:
         help="a synthetic subject folder: replace the fitted segment lengths by its true ones "
         "(truth.json), to measure the tracker alone",
     )
-    parser.add_argument("--overlays", action="store_true", help="write overlay/<frame>.png")
+    parser.add_argument(
+        "--overlays", action="store_true", help="write overlay/<frame>.png and overlay.avi"
+    )
     parser.add_argument(
         "--threads",
         type=int,

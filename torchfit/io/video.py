@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchfit.errors import DataError
+from torchfit.errors import DataError, OutputError
 
-__all__ = ["video_frame_count", "read_video"]
+__all__ = ["video_frame_count", "read_video", "VideoWriter"]
 
 
 def _open(path: str | Path):
@@ -68,3 +68,53 @@ def read_video(
             k += 1
     finally:
         cap.release()
+
+
+class VideoWriter:
+    """Write RGB frames to a Motion-JPEG ``.avi`` (OpenCV's own encoder, no codec to install).
+
+    Use as a context manager; ``write`` takes ``(H, W, 3)`` uint8 RGB frames of one size. The
+    file is written next to its final name and moved there when the writer closes without an
+    error, so a killed run leaves no half-written video under that name.
+
+    Raises:
+        OutputError: the file cannot be opened for writing or a frame has another size.
+    """
+
+    def __init__(self, path: str | Path, fps: float) -> None:
+        self.path = Path(path)
+        self.fps = float(fps)
+        self._tmp = self.path.with_name(f".{self.path.stem}.part{self.path.suffix}")
+        self._writer = None
+        self._size: tuple[int, int] | None = None
+
+    def write(self, frame: np.ndarray) -> None:
+        """Append one ``(H, W, 3)`` uint8 RGB frame (the first one sets the video's size)."""
+        import cv2
+
+        frame = np.asarray(frame)
+        if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
+            raise OutputError(f"{self.path}: expected (H, W, 3) uint8 frames, got {frame.shape}")
+        size = (frame.shape[1], frame.shape[0])
+        if self._writer is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fourcc = cv2.VideoWriter_fourcc(*"MJPG")
+            self._writer = cv2.VideoWriter(str(self._tmp), fourcc, self.fps, size)
+            if not self._writer.isOpened():
+                raise OutputError(f"{self.path}: cannot be opened for writing as a video")
+            self._size = size
+        elif size != self._size:
+            raise OutputError(f"{self.path}: frame of {size[0]}x{size[1]} in a {self._size} video")
+        self._writer.write(np.ascontiguousarray(frame[:, :, ::-1]))
+
+    def __enter__(self) -> VideoWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self._writer is None:
+            return
+        self._writer.release()
+        if exc_type is None:
+            self._tmp.replace(self.path)
+        else:
+            self._tmp.unlink(missing_ok=True)

@@ -42,7 +42,7 @@ from torchfit.io.export import write_json
 from torchfit.io.files import make_dirs, write_atomic
 from torchfit.io.images import list_images, load_frames, write_image
 from torchfit.io.prefetch import prefetch, prefetch_process
-from torchfit.io.video import read_video, video_frame_count
+from torchfit.io.video import VideoWriter, read_video, video_frame_count
 from torchfit.measurements import JOINT_NAMES
 from torchfit.track import PoseLayout, TrackOptions, frame_data, start_poses, track
 
@@ -202,7 +202,8 @@ def track_sequences(
         config: segmentation and tracker options.
         tb: optional :class:`torchfit.pipeline.tensorboard.TensorBoardCallback`.
         progress: wraps the frame iterator.
-        overlays: also write ``overlay/<frame>.png`` (model contour green, person magenta).
+        overlays: also write ``overlay/<frame>.png`` (model contour green, person magenta)
+            and the same frames as ``overlay.avi`` (Motion JPEG at the sequence's rate).
         ahead: where the next frames are read, segmented and turned into contours and
             distance maps while one is tracked: ``"thread"``, ``"process"`` (a second
             interpreter: it starts in a few seconds, and then overlaps with the tracking far
@@ -307,13 +308,16 @@ def _write_overlays(model, scales, seq, background, x, recs, out, config) -> Non
     with torch.no_grad():
         verts = model(scales.expand(x.shape[0], -1, -1), q, t, r).vertices
     faces = model.faces.numpy()
-    for f, (rec, image) in enumerate(zip(recs, seq.images(), strict=False)):
-        person = segment(image, background, config.segmentation).masks[0, 0].numpy()
-        pix = project_points(verts[f : f + 1], cam)[0].numpy()
-        mask = render_silhouette(pix, faces, seq.camera.image_size) > 0
-        rgb = (image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
-        label = f"{seq.name} {f:06d} {rec.status} {rec.contour_rms:.1f}px"
-        write_image(out / "overlay" / f"{f:06d}.png", fit_overlay(rgb, person, mask, label))
+    with VideoWriter(out / "overlay.avi", seq.fps) as video:
+        for f, (rec, image) in enumerate(zip(recs, seq.images(), strict=False)):
+            person = segment(image, background, config.segmentation).masks[0, 0].numpy()
+            pix = project_points(verts[f : f + 1], cam)[0].numpy()
+            mask = render_silhouette(pix, faces, seq.camera.image_size) > 0
+            rgb = (image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+            label = f"{seq.name} {f:06d} {rec.status} {rec.contour_rms:.1f}px"
+            frame = fit_overlay(rgb, person, mask, label)
+            write_image(out / "overlay" / f"{f:06d}.png", frame)
+            video.write(frame)
 
 
 def joint_errors(tracked: list[dict], truth: list[dict], camera: Camera | None = None) -> dict:
