@@ -114,30 +114,40 @@ def test_sections_are_the_numeric_options(tmp_path):
     assert type(cfg.solver.lm_options()) is LMOptions and cfg.solver.lm_options().max_iter == 9
 
 
+def _differences(a, b, prefix: str = "") -> list[str]:
+    """The dotted keys where two configs differ."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(a):
+        return [
+            d
+            for f in dataclasses.fields(a)
+            for d in _differences(getattr(a, f.name), getattr(b, f.name), f"{prefix}.{f.name}")
+        ]
+    return [] if a == b else [prefix[1:]]
+
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
 def test_the_defaults_are_the_accuracy_configuration():
     """A config that names no fit or solver key fits as configs/benchmark.yaml does (the
     configuration behind the accuracy figures), and the demo differs from it only in its run
     name, data and batch size."""
-    import dataclasses
-
-    root = Path(__file__).resolve().parents[1] / "configs"
-
-    def differences(a, b, prefix=""):
-        if dataclasses.is_dataclass(a):
-            return [
-                d
-                for f in dataclasses.fields(a)
-                for d in differences(getattr(a, f.name), getattr(b, f.name), f"{prefix}.{f.name}")
-            ]
-        return [] if a == b else [prefix[1:]]
-
     default = load_config(None)
-    assert differences(default, load_config(root / "benchmark.yaml")) == ["run.name"]
-    demo = load_config(root / "demo.yaml")
-    assert differences(default, demo) == ["run.name", "data.root", "fit.batch_size"]
+    assert _differences(default, load_config(CONFIGS / "benchmark.yaml")) == ["run.name"]
+    demo = load_config(CONFIGS / "demo.yaml")
+    assert _differences(default, demo) == ["run.name", "data.root", "fit.batch_size"]
     assert default.fit.prior.weight == 0.3 and default.fit.prior.pose_weight == 0.5
     assert default.fit.bends.weight == 1.0 and default.solver.min_diag == 1.0
     assert [s.max_iter for s in default.fit.stages] == [30, 50]
+
+
+def test_the_tracker_s_defaults_are_configs_track_yaml():
+    from torchfit.pipeline.track import TrackConfig
+
+    shipped = load_config(CONFIGS / "track.yaml", schema=TrackConfig)
+    assert _differences(TrackConfig(), shipped) == []
 
 
 def test_configs_are_frozen_and_replaced_by_key():
