@@ -3,6 +3,7 @@ local Ray cluster of two workers, through tools/fit.py in fresh processes (slow:
 cluster takes 10-20 s on a busy machine), and the thread counts of both executors."""
 
 import csv
+import importlib.util
 import json
 import os
 import shutil
@@ -28,6 +29,11 @@ FAST = (
     "fit.contour_stride=3",
 )
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+#: the tests that start a Ray cluster need the optional extra
+needs_ray = pytest.mark.skipif(
+    importlib.util.find_spec("ray") is None,
+    reason='needs Ray: pip install -e ".[ray]"',
+)
 
 
 def fit(data: Path, out: Path, *extra: str, timeout: float = 600, **kwargs):
@@ -97,6 +103,7 @@ def local(data, tmp_path_factory):
 
 
 @pytest.mark.slow  # a Ray cluster takes 10-20 s to start on a busy two-core machine
+@needs_ray
 def test_ray_run_equals_the_local_run_and_resumes_across_executors(data, local, tmp_path):
     out = tmp_path / "run"
     proc = fit(data, out, *FAST, "--executor", "ray", "--workers", "2")
@@ -130,6 +137,7 @@ def test_ray_run_equals_the_local_run_and_resumes_across_executors(data, local, 
 
 
 @pytest.mark.slow
+@needs_ray
 def test_demo_on_ray_with_two_workers_equals_the_local_demo(tmp_path):
     """The README demo, whole: ``--executor ray --workers 2`` against the local run."""
     local_out, ray_out = tmp_path / "local", tmp_path / "ray"
@@ -158,6 +166,7 @@ def _task_processes() -> list[int]:
 
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="finds the Ray workers in /proc")
+@needs_ray
 def test_a_killed_worker_has_its_batch_retried(data, local, tmp_path):
     out = tmp_path / "run"
     command = [
@@ -280,6 +289,7 @@ def test_a_device_torch_cannot_use_is_a_config_error():
         torch.set_num_threads(before)
 
 
+@needs_ray
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("setting", "message"),
