@@ -104,7 +104,8 @@ class VideoWriter:
                 raise OutputError(f"{self.path}: cannot be opened for writing as a video")
             self._size = size
         elif size != self._size:
-            raise OutputError(f"{self.path}: frame of {size[0]}x{size[1]} in a {self._size} video")
+            w, h = self._size
+            raise OutputError(f"{self.path}: frame of {size[0]}x{size[1]} in a {w}x{h} video")
         self._writer.write(np.ascontiguousarray(frame[:, :, ::-1]))
 
     def __enter__(self) -> VideoWriter:
