@@ -124,16 +124,16 @@ def main() -> None:
         temporal_joints=0.0,
         temporal_depth=0.0,
     )
-    x = np.zeros(layout.num_params)
-    x[:3] = np.mean([truth[0][n] for n in NAMES], axis=0)
-    first = None
+    x0 = np.zeros(layout.num_params)
+    x0[:3] = np.mean([truth[0][n] for n in NAMES], axis=0)
     keys = ("floor_mm", "settled_mm", "settled_free_mm", "settled_moved_mm")
     out: dict[str, list[np.ndarray]] = {k: [] for k in keys}
-    before = None
+    poses: list[np.ndarray] = []  # the floor pose of each sampled frame
     for f in range(0, len(truth), args.every):
         target = np.array([truth[f][n] for n in NAMES])
-        before, x = x if first is not None else None, floor_pose(model, sc, target, x)
-        first = x if first is None else first
+        before = poses[-1] if poses else None
+        x = floor_pose(model, sc, target, x0 if before is None else before)
+        poses.append(x)
         out["floor_mm"].append(joint_error_mm(model, sc, x, target))
         if args.settle:
             image = load_frames([seq.frames[f]], seq.camera.image_size)[0]
@@ -154,7 +154,7 @@ def main() -> None:
             doc[key] = round(float(np.mean(values)), 1)
             doc[f"{key}_per_joint"] = _mean_per_joint(values)
     if args.track:
-        start = torch.from_numpy(first[None].copy())
+        start = torch.from_numpy(poses[0][None].copy())
         (summary,) = track_sequences(model, sc[0], [seq], [Path(args.track)], config, start=start)
         doc["tracked_from_floor_mm"] = round(summary["mean_joint_error_mm"], 1)
         doc["tracked_from_floor_status"] = summary["status"]

@@ -9,8 +9,7 @@ scales, which stay fixed). Each ``SEQ_DIR`` holds ``camera.yaml``, ``background/
 Several sequences are tracked together, one frame per batch row. Writes per sequence
 ``OUT_DIR/<k>_<name>/`` (``OUT_DIR`` itself for a single sequence): ``joints_world.json``,
 ``motion.bvh``, ``track.csv``, ``overlay/`` and ``overlay.avi`` with ``--overlays`` and, with
-a truth,
-``eval.json``; TensorBoard scalars in ``OUT_DIR/tb``.
+a truth, ``eval.json``; TensorBoard scalars in ``OUT_DIR/tb``.
 
 Exit codes: 0 ok, 1 a sequence lost frames (status ``uncertain``), 2 bad arguments or config,
 3 output not writable, 4 model or sequence missing or unreadable (also a frame found unreadable
