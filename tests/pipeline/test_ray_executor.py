@@ -1,6 +1,8 @@
 """The Ray executor: the same outputs, summary, exit code and resume as a local run, on a real
-local Ray cluster of two workers, through tools/fit.py in fresh processes (slow: starting a
-cluster takes 10-20 s on a busy machine), and the thread counts of both executors."""
+local Ray cluster of two workers, through tools/fit.py in fresh processes, and the thread counts
+of both executors. One short run on a cluster is in the default test run (the ``dev`` extra
+installs Ray); the resume, the retried worker and the whole demo on Ray are marked slow
+(starting a cluster takes 10-20 s on a busy two-core machine)."""
 
 import csv
 import importlib.util
@@ -102,11 +104,18 @@ def local(data, tmp_path_factory):
     return out
 
 
-@pytest.mark.slow  # a Ray cluster takes 10-20 s to start on a busy two-core machine
-@needs_ray
-def test_ray_run_equals_the_local_run_and_resumes_across_executors(data, local, tmp_path):
-    out = tmp_path / "run"
+@pytest.fixture(scope="module")
+def on_ray(data, tmp_path_factory):
+    """The same run on a local Ray cluster of two workers (10-20 s to start on a busy two-core
+    machine)."""
+    out = tmp_path_factory.mktemp("ray") / "run"
     proc = fit(data, out, *FAST, "--executor", "ray", "--workers", "2")
+    return out, proc
+
+
+@needs_ray
+def test_ray_run_equals_the_local_run(on_ray, local):
+    out, proc = on_ray
     assert proc.returncode == 1, proc.stderr  # the same exit code: one subject failed
     assert "2 workers x 1 torch threads" in proc.stderr
     rows = summary(out)
@@ -121,7 +130,13 @@ def test_ray_run_equals_the_local_run_and_resumes_across_executors(data, local, 
     # one TensorBoard folder: the event files of the tasks (one per batch)
     assert len(list((out / "tb").glob("events.out.tfevents.*"))) == 2
 
-    # resume across executors: a local rerun keeps the Ray run's subjects ...
+
+@pytest.mark.slow  # three more runs, two of them on a Ray cluster
+@needs_ray
+def test_a_run_resumes_across_executors(data, local, on_ray, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(on_ray[0], out)
+    # a local rerun keeps the Ray run's subjects ...
     proc = fit(data, out, *FAST)
     assert proc.returncode == 1, proc.stderr
     assert proc.stdout.count("kept from an earlier run") == 2
