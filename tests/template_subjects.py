@@ -24,8 +24,8 @@ from torchfit.viz.preview import nominal_view, render_pose_preview
 SIZE = (360, 288)
 
 
-def _background(rng: np.random.Generator) -> np.ndarray:
-    h, w = SIZE[1], SIZE[0]
+def _background(rng: np.random.Generator, size: tuple[int, int] = SIZE) -> np.ndarray:
+    w, h = size
     base = rng.integers(60, 200, size=(h // 24 + 1, w // 24 + 1, 3)).astype(np.uint8)
     image = cv2.resize(base, (w, h), interpolation=cv2.INTER_LINEAR)
     return cv2.GaussianBlur(image, (7, 7), 2.0)
@@ -38,15 +38,19 @@ def make_template_subject(
     seed: int = 0,
     azimuth_deg: float = 30.0,
     scales: torch.Tensor | None = None,
+    image_size: tuple[int, int] = SIZE,
 ) -> dict:
     """Write one subject folder (design.md section 3 layout); returns its truth measurements.
 
     ``scales`` (1, S, 3), when given, are the body's segment scales (``scale`` is then unused).
+    ``image_size`` (width, height): the focal length grows with the height, so the person
+    fills the same share of the picture.
     """
     rng = np.random.default_rng(seed)
-    camera = nominal_view(distance=3.5, azimuth_deg=azimuth_deg, focal=450.0, image_size=SIZE)
+    focal = 450.0 * image_size[1] / SIZE[1]
+    camera = nominal_view(distance=3.5, azimuth_deg=azimuth_deg, focal=focal, image_size=image_size)
     save_camera(camera, folder / "camera.yaml")
-    bg = _background(rng)
+    bg = _background(rng, image_size)
     (folder / "background").mkdir(parents=True, exist_ok=True)
     (folder / "poses").mkdir(parents=True, exist_ok=True)
     noise = lambda img: np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)  # noqa: E731

@@ -92,6 +92,28 @@ def test_fit_cli_writes_outputs_and_survives_a_bad_subject(dataset, tmp_path):
     assert (out / "alice" / "measurements.json").stat().st_mtime_ns == before
 
 
+def test_subjects_of_two_image_sizes_share_a_run(tmp_path):
+    """Cameras of two resolutions in one dataset: each size is batched on its own (a batch
+    stacks its images), and every subject is fitted."""
+    from torchfit.io.dataset import load_dataset
+    from torchfit.pipeline.run import batches
+
+    root = tmp_path / "data"
+    model = BodyModel("mpeg4_full")
+    make_template_subject(root / "a_small", model, seed=1)
+    make_template_subject(root / "b_large", model, scale=1.05, seed=2, image_size=(480, 384))
+    shutil.copytree(root / "a_small", root / "c_small")
+    subjects = load_dataset(root)
+    grouped = batches(subjects, 2)
+    assert [[s.name for s in b] for b in grouped] == [["a_small", "c_small"], ["b_large"]]
+    out = tmp_path / "run"
+    proc = demo_fit(root, out, "fit.batch_size=3", "output.overlays=false")
+    assert proc.returncode == 0, proc.stderr
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert [r["subject"] for r in rows] == ["a_small", "b_large", "c_small"]  # dataset order
+    assert all(r["status"] == "ok" for r in rows), [r["message"] for r in rows]
+
+
 def test_fit_cli_config_errors(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("solver:\n  max_iters: 3\n")

@@ -235,8 +235,20 @@ def fit_batch(
 
 
 def batches(subjects: list[Subject], size: int) -> list[list[Subject]]:
-    """``subjects`` in consecutive batches of ``size`` (the last one may be smaller)."""
-    return [subjects[start : start + size] for start in range(0, len(subjects), size)]
+    """``subjects`` in batches of ``size``, one image size per batch (a batch stacks its
+    images): the subjects grouped by their camera's image size, the groups in the order of
+    their first subject and each cut into consecutive batches (a group's last may be smaller).
+    A dataset of one image size gives consecutive batches in its own order; a subject's result
+    does not depend on its batch."""
+    groups: dict[tuple[int, int] | None, list[Subject]] = {}
+    for subject in subjects:
+        size_of = None if subject.camera is None else tuple(subject.camera.image_size)
+        groups.setdefault(size_of, []).append(subject)
+    return [
+        group[start : start + size]
+        for group in groups.values()
+        for start in range(0, len(group), size)
+    ]
 
 
 def fit_subjects(
