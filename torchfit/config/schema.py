@@ -243,8 +243,16 @@ class FitConfig(FitOptions):
         initial_guess: ``template`` or ``parts`` (the second paper's automatic start).
         batch_size: subjects solved together in one batched LM run.
         max_contour_rms_px: a fitted subject whose model contour is on average further than
-            this from the person's contour in some posture (e_M, pixels) gets status
-            ``poor_fit`` (check its overlays).
+            this from the person's contour in some posture (e_M, reference pixels: see
+            ``reference_px_per_m``) gets status ``poor_fit`` (check its overlays).
+        reference_px_per_m: the image residuals, the robust loss's scale and the pixel limits
+            (``max_contour_rms_px``, ``pose_outlier_min_px``, ``bends.max_shift_px`` and
+            ``bends.shown_px``) are in pixels of a camera that sees this many pixels per metre
+            at the person (:func:`torchfit.fit.problem.pixels_per_metre`), so that the priors
+            weigh the same against the images on any camera. 210: the development sets'
+            cameras (720x576, 197-223 pixels per metre), on which every weight was chosen; a
+            1920x1080 camera framing the same view sees about 400. ``null``: the image's own
+            pixels (each camera's resolution then changes the balance).
         prior: the population prior over the log scales and the weight of a known height
             (:class:`torchfit.fit.prior.PriorOptions`; ``subject.yaml`` gives the facts).
         bends: the bent-joint marks (:class:`torchfit.fit.bends.BendOptions`): the flexed
@@ -263,6 +271,7 @@ class FitConfig(FitOptions):
     initial_guess: Literal["template", "parts"] = "template"
     batch_size: int = 4
     max_contour_rms_px: float = 15.0
+    reference_px_per_m: float | None = 210.0
     prior: PriorOptions = field(default_factory=_default_prior)
     bends: BendOptions = field(default_factory=_default_bends)
 

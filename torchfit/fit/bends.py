@@ -63,7 +63,8 @@ class BendOptions:
             design.md's joint names: the joint, bent in posture j, between the limbs to its
             two neighbours.
         max_shift_px: a crossing that moves the joint further than this is not trusted
-            (a silhouette that lost part of a limb).
+            (a silhouette that lost part of a limb). This, ``shown_px`` and e_J are in
+            reference pixels (:class:`torchfit.fit.FitOptions` ``reference_px_per_m``).
         min_angle_deg: the smallest bend between the two limbs' axes that marks the joint.
         shown_px: a fitted joint within this of its mark shows the measurements it splits
             (:data:`SHOWN_BY`: the knee the thigh and the lower leg), and the judge takes
@@ -250,10 +251,10 @@ class BendFit(PriorFit):
             for i, subject in enumerate(rows.tolist()):
                 mask = person[subject].cpu().numpy()
                 model = sel.mask(i) > 0
+                # max_shift_px is in reference pixels (FitOptions.reference_px_per_m)
+                shift = opts.max_shift_px / float(self.image_scale[subject])
                 for m in range(len(marks)):
-                    target = bend_target(
-                        mask, model, joints[i, m], opts.max_shift_px, opts.min_angle_deg
-                    )
+                    target = bend_target(mask, model, joints[i, m], shift, opts.min_angle_deg)
                     if target is not None:
                         out[i, m] = (target[0], target[1], 1.0)
             sel.marks = torch.as_tensor(out, **self.kw)
@@ -264,10 +265,18 @@ class BendFit(PriorFit):
             return torch.zeros(n, count, 3, **self.kw)
         return sel.marks
 
-    def _entries(self, pixels: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """(N, 2 L) e_J from the marked joints' pixels (N, L, 2) and their targets (N, L, 3)."""
-        r = self.bend_options.weight * (pixels - target[..., :2]) * target[..., 2:]
+    def _entries(
+        self, pixels: torch.Tensor, target: torch.Tensor, rows: torch.Tensor
+    ) -> torch.Tensor:
+        """(N, 2 L) e_J from the marked joints' pixels (N, L, 2) and their targets (N, L, 3)
+        of subjects ``rows`` (N,), in reference pixels."""
+        r = (pixels - target[..., :2]) * self._mark_weights(target, rows)
         return r.reshape(pixels.shape[0], -1)
+
+    def _mark_weights(self, target: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """(N, L, 1): the weight of each mark's two entries (0 where it has no target), times
+        the subject's :attr:`image_scale`."""
+        return self.bend_options.weight * target[..., 2:] * self.image_scale[rows][:, None, None]
 
     def mark_residual(
         self, full: torch.Tensor, rows: torch.Tensor, selections: dict[int, ContourSelection]
@@ -276,7 +285,7 @@ class BendFit(PriorFit):
         parts = [full.new_zeros(full.shape[0], 0)]
         for j, marks in self.marks.items():
             target = self._marks_at(selections[j], full.shape[0], len(marks))
-            parts.append(self._entries(self.joint_pixels(full, j, rows)[:, :, 1], target))
+            parts.append(self._entries(self.joint_pixels(full, j, rows)[:, :, 1], target, rows))
         return torch.cat(parts, 1)
 
     def residual(self, full, selections=None, rows=None) -> torch.Tensor:
@@ -376,9 +385,9 @@ class BendFit(PriorFit):
         for j, cols in self._mark_rows().items():
             target = self._marks_at(selections[j], n, len(self.marks[j]))
             pixels, d_pix, at = self._mark_jacobian(full, free, j, rows)
-            parts.append(self._entries(pixels, target))
+            parts.append(self._entries(pixels, target, rows))
             if at.numel():
-                weight = self.bend_options.weight * target[..., 2:, None]
+                weight = self._mark_weights(target, rows)[..., None]
                 jac[:, cols, at] = (weight * d_pix).reshape(n, -1, at.numel())
         return jac, torch.cat(parts, 1)
 
@@ -406,15 +415,16 @@ class BendFit(PriorFit):
             out[f"pose{j}"] = record
         return out
 
-    def shown(self, record: dict) -> set[str]:
-        """The measurements a subject's marks show (:data:`SHOWN_BY`), from its
-        :meth:`mark_record`: those of every joint found and fitted within ``shown_px`` of
-        its mark."""
+    def shown(self, record: dict, i: int = 0) -> set[str]:
+        """The measurements subject ``i``'s marks show (:data:`SHOWN_BY`), from its
+        :meth:`mark_record`: those of every joint found and fitted within ``shown_px``
+        (reference pixels, :attr:`image_scale`) of its mark."""
+        limit = self.bend_options.shown_px / float(self.image_scale[i])
         out: set[str] = set()
         for joints in record.values():
             for joint, mark in joints.items():
                 offset = mark["offset_px"]
-                if offset is not None and offset <= self.bend_options.shown_px:
+                if offset is not None and offset <= limit:
                     out.update(SHOWN_BY.get(_kind(joint), ()))
         return out
 

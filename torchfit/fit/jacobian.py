@@ -88,7 +88,7 @@ def jacobian_and_residual(
             local["mb"], flat, at_row["mb"]
         )
         block_m = padded_row_sum(per_point.transpose(1, 2))
-        weight = fit.pose_weights[rows][:, k, None]
+        weight = fit.image_weights(rows, k)
         parts.append(torch.cat([e_p.detach(), e_m.detach()[:, None]], 1) * weight)
         # the scale columns and the posture's own are two runs of consecutive columns
         e_p_rows, e_m_row = rl.e_p(j), rl.e_m(j)

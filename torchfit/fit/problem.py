@@ -14,8 +14,6 @@ product is the posture's block.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
 from torchfit.body.model import BodyModel
@@ -31,79 +29,14 @@ from torchfit.fit.model_contour import (
     point_to_edge_distance,
     select_contours,
 )
+from torchfit.fit.options import FitOptions, pixels_per_metre
 from torchfit.fit.person import PersonData
 from torchfit.fit.pose import Poser, free_joints_for, nominal_angles
 from torchfit.fit.residuals import barrier, model_to_person, person_to_model
 from torchfit.image.distance import sample_distance_map
 
-__all__ = ["FitOptions", "SilhouetteFit"]
-
-
-@dataclass(frozen=True)
-class FitOptions:
-    """Options of the fitting problem (first paper, sections 6–8).
-
-    Attributes:
-        poses: the fitted postures (1..6), in order.
-        free_joints: per-posture free joint DOFs, e.g. ``{"pose3": ["l_knee_flexion", ...]}``;
-            a posture not named keeps the defaults of design.md section 4
-            (:data:`torchfit.fit.pose.DEFAULT_FREE_JOINTS`).
-        translation_max_m: floor translation interval, each axis, metres.
-        yaw_max_deg: yaw interval around the nominal view, degrees.
-        tilt_max_deg: roll / pitch interval, degrees.
-        side_roll_max_deg: roll interval in the side views (postures 3 and 6), degrees;
-            ``None``: ``tilt_max_deg``. Seen from the side, a roll leans the body towards or
-            away from the camera: the silhouette hardly shows it, and a fit left free there
-            lifts one hip and lowers the other (a longer thigh on the flexed leg of posture 3,
-            a shorter shank on the standing one).
-        barrier_weight: e_B slope outside an interval.
-        samples_per_edge: model contour candidates per mesh edge.
-        contour_tolerance_px: a sample within this of the rendered contour is on it.
-        contour_stride: use every n-th person contour pixel in e_P.
-        ignore_shadow: treat the pixels the segmentation's shadow test removed as uncertain
-            rather than as background: no e_P from person contour pixels within
-            ``shadow_margin_px`` of them, no e_M from model contour points on them (has an
-            effect only where the segmentation ran its shadow test).
-        shadow_margin_px: see ``ignore_shadow``.
-        pose_outlier_k: a posture whose contour RMS (e_P) exceeds the median of the subject's
-            postures by more than ``pose_outlier_k`` robust standard deviations
-            (1.4826 MAD, at least ``pose_outlier_min_px``) disagrees with the others: the
-            pipeline down-weights it, runs the last stage again and reports it. ``None``: never.
-        pose_outlier_min_px: the smallest excess over the median that makes an outlier, pixels.
-        pose_outlier_weight: the weight of a down-weighted posture's residuals (its cost
-            counts ``pose_outlier_weight²``).
-    """
-
-    poses: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
-    free_joints: dict[str, list[str]] | None = None
-    translation_max_m: float = 0.15
-    yaw_max_deg: float = 15.0
-    tilt_max_deg: float = 5.0
-    side_roll_max_deg: float | None = None
-    barrier_weight: float = 100.0
-    samples_per_edge: int = 4
-    contour_tolerance_px: float = 1.0
-    contour_stride: int = 1
-    ignore_shadow: bool = True
-    shadow_margin_px: int = 2
-    pose_outlier_k: float | None = 5.0
-    pose_outlier_min_px: float = 3.0
-    pose_outlier_weight: float = 0.1
-
-    def __post_init__(self) -> None:
-        poses = list(self.poses)
-        if not poses or len(set(poses)) != len(poses) or not set(poses) <= set(range(1, 7)):
-            raise ConfigError(f"fit.poses: expected distinct postures from 1..6, got {poses}")
-        if self.side_roll_max_deg is not None and not self.side_roll_max_deg >= 0:
-            raise ConfigError(
-                f"fit.side_roll_max_deg: expected a number >= 0 or null, got "
-                f"{self.side_roll_max_deg!r}"
-            )
-        if not 0 < self.pose_outlier_weight <= 1:
-            raise ConfigError(
-                f"fit.pose_outlier_weight: expected a number in (0, 1], got "
-                f"{self.pose_outlier_weight!r}"
-            )
+# FitOptions and pixels_per_metre live in torchfit.fit.options; imported from here too
+__all__ = ["FitOptions", "SilhouetteFit", "pixels_per_metre"]
 
 
 class SilhouetteFit:
@@ -156,6 +89,10 @@ class SilhouetteFit:
         self.upper = layout.upper(**kw)
         #: (B, J) weight of each posture's residuals (e_P and e_M), 1 unless down-weighted.
         self.pose_weights = torch.ones(self.batch, len(self.poses), **kw)
+        #: (B,) reference pixels per image pixel (``options.reference_px_per_m``; 1 without)
+        self.image_scale = torch.ones(self.batch, **kw)
+        if options.reference_px_per_m is not None:
+            self.image_scale = options.reference_px_per_m / pixels_per_metre(self.camera)
         #: (parameters, rows, choice) of the last :meth:`select`
         self._last_choice: tuple | None = None
 
@@ -337,13 +274,20 @@ class SilhouetteFit:
         e_p, e_m = self._pose_terms(
             k, rows, ends, selection, self._endpoint_pixels(pixels, lookup, ends)
         )
-        return torch.cat([e_p, e_m[:, None]], dim=1) * self.pose_weights[rows, k, None]
+        return torch.cat([e_p, e_m[:, None]], dim=1) * self.image_weights(rows, k)
+
+    def image_weights(self, rows: torch.Tensor, k: int) -> torch.Tensor:
+        """(N, 1) the factor of pose index k's image residuals in rows ``rows``: its posture
+        weight times the subject's :attr:`image_scale`."""
+        return (self.pose_weights[rows, k] * self.image_scale[rows])[:, None]
 
     def loss_units(self) -> torch.Tensor:
-        """(B, M) size of one pixel in each residual entry, for the solver's robust loss.
+        """(B, M) size of one (reference) pixel in each residual entry, for the solver's robust
+        loss.
 
-        An e_P entry is a distance in pixels divided by ``sqrt(|C_P|)`` and times its
-        posture's weight; e_M and e_B stay least squares (``inf``).
+        An e_P entry is a distance in reference pixels (:attr:`image_scale` times the image's)
+        divided by ``sqrt(|C_P|)`` and times its posture's weight; e_M and e_B stay least
+        squares (``inf``).
         """
         parts = []
         for k, valid in enumerate(self.person.valid):

@@ -197,13 +197,13 @@ def pose_contour_rms(fit: SilhouetteFit, full: torch.Tensor) -> tuple[torch.Tens
     """Unweighted contour errors of every posture at ``full`` (B, P).
 
     Returns:
-        ``(rms, e_m)``, each (B, J) pixels in ``fit.poses`` order: the RMS distance of the
-        person's contour pixels to the model contour (e_P) and e_M, whatever the posture
-        weights.
+        ``(rms, e_m)``, each (B, J) image pixels in ``fit.poses`` order: the RMS distance of
+        the person's contour pixels to the model contour (e_P) and e_M, whatever the posture
+        weights and the reference scale (``fit.image_scale``).
     """
     r = fit.residual(full, fit.select(full))
     rl = fit.residual_layout
-    w = fit.pose_weights
+    w = fit.pose_weights * fit.image_scale[:, None]
     rms = torch.stack([r[:, rl.e_p(j)].norm(dim=1) for j in fit.poses], 1) / w
     e_m = torch.stack([r[:, rl.e_m(j)] for j in fit.poses], 1) / w
     return rms, e_m

@@ -192,11 +192,14 @@ def fit_batch(
             raise OutputError(f"cannot write {folder}: the run folder {run_dir} is gone")
         clear_outputs(folder)  # fingerprint.json first: the folder is not finished until the end
         make_dirs(folder)
+        # the residual is in reference pixels (fit.reference_px_per_m); quality in the image's
+        scale = float(fit.image_scale[i])
         quality = {
-            f"pose{j}": {"e_P_rms_px": e_p, "e_M_px": e_m}
+            f"pose{j}": {"e_P_rms_px": e_p / scale, "e_M_px": e_m / scale}
             for j, (e_p, e_m) in fit.residual_layout.per_pose_quality(final[i]).items()
         }
-        status, message = judge(records[i], quality, config.fit.max_contour_rms_px, prep.flags)
+        limit = config.fit.max_contour_rms_px / scale
+        status, message = judge(records[i], quality, limit, prep.flags)
         measurements = {k: float(v[i]) for k, v in measures.items()}
         bends = fit.mark_record(x, selections, i) if isinstance(fit, BendFit) else None
         if config.output.overlays:

@@ -246,7 +246,9 @@ def _reweight(
     down-weighted posture."""
     opts = config.fit
     rms, _ = pose_contour_rms(fit, x)
-    outliers = pose_outliers(rms, opts.pose_outlier_k, opts.pose_outlier_min_px)
+    # pose_outlier_min_px is in reference pixels (fit.reference_px_per_m)
+    reference = rms * fit.image_scale[:, None]
+    outliers = pose_outliers(reference, opts.pose_outlier_k, opts.pose_outlier_min_px)
     med = rms.median(dim=1).values
     new: list[int] = []
     for i, k in outliers.nonzero().tolist():
@@ -282,7 +284,7 @@ def _final_flags(
         if isinstance(fit, BendFit) and any(o.key in fit.can_show for o in outliers):
             # a proportion the images show (a knee placed by its limbs) is not judged by the
             # population's percentiles, only by the hard limits
-            shown = fit.shown(fit.mark_record(x, fit.select(x), i))
+            shown = fit.shown(fit.mark_record(x, fit.select(x), i), i)
             outliers = [o for o in outliers if o.key not in shown]
         flags += hard or [o.describe() for o in outliers]
         flags += bound_flags([float(x[i, c]) for c in free], names, fit.scale_bounds)
