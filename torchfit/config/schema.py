@@ -251,7 +251,7 @@ class FitConfig(FitOptions):
             at the person (:func:`torchfit.fit.problem.pixels_per_metre`), so that the priors
             weigh the same against the images on any camera. 210: the development sets'
             cameras (720x576, 197-223 pixels per metre), on which every weight was chosen; a
-            1920x1080 camera framing the same view sees about 400. ``null``: the image's own
+            1920x1080 camera framing the same view sees about 390. ``null``: the image's own
             pixels (each camera's resolution then changes the balance).
         prior: the population prior over the log scales and the weight of a known height
             (:class:`torchfit.fit.prior.PriorOptions`; ``subject.yaml`` gives the facts).
