@@ -184,6 +184,7 @@ def link_subjects(root: Path, names: list[str], folder: Path, first: int = 0) ->
     """``folder`` holding links ``NNN_name`` to ``root/name`` for ``names``, numbered from
     ``first``."""
     folder.mkdir(parents=True)
+    root = root.resolve()  # a relative link would point from the temporary folder
     for i, name in enumerate(names, first):
         os.symlink(root / name, folder / f"{i:03d}_{name}")
     return folder

@@ -134,6 +134,12 @@ def test_load_dataset_folder_keeps_going(tmp_path):
     assert "subject folder not found" in chosen[1].problems[0]
 
 
+def test_a_subject_folder_given_as_the_dataset_is_named(tmp_path):
+    make_subject(tmp_path, "alice")
+    with pytest.raises(DataError, match=r"is a subject folder .*data.subjects=\[alice\]"):
+        load_dataset(tmp_path / "alice")
+
+
 def test_load_dataset_manifest(tmp_path):
     data = tmp_path / "data"
     make_subject(data, "s1")

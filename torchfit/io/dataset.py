@@ -347,9 +347,16 @@ def load_dataset(
         order; check ``subject.ok`` / ``subject.problems`` before fitting.
 
     Raises:
-        DataError: ``root`` does not exist, or the manifest cannot be read.
+        DataError: ``root`` does not exist, is itself a subject folder, or the manifest cannot
+            be read.
     """
     root = Path(root)
+    if (root / "camera.yaml").is_file() and (root / "poses").is_dir():
+        raise DataError(
+            f"root: {root} is a subject folder (it holds camera.yaml and poses/); pass the "
+            f"folder that holds it ({root.parent}), with data.subjects=[{root.name}] to fit "
+            "this subject alone"
+        )
     if root.is_dir():
         try:
             folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
