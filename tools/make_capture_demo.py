@@ -49,9 +49,13 @@ from torchfit.synth.video import make_video  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", required=True, type=Path)
-    parser.add_argument("--seed", type=int, default=7000)
-    parser.add_argument("--board", default="checkerboard:9x6:0.12")
+    parser.add_argument("--out", required=True, type=Path, help="folder to write the demo into")
+    parser.add_argument("--seed", type=int, default=7000, help="body, room and camera seed")
+    parser.add_argument(
+        "--board",
+        default="checkerboard:9x6:0.12",
+        help="checkerboard:COLSxROWS:SQUARE_M, inner corners and square size",
+    )
     parser.add_argument("--boards", type=int, default=12, help="held board images (default 12)")
     parser.add_argument(
         "--subject", type=Path, help="film this dataset subject (a folder with synth.json)"

@@ -187,12 +187,26 @@ def calibrate(data: Path, template: str) -> dict:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--ansur", type=Path, default=ROOT.parent / "shared" / "data" / "ansur2")
     parser.add_argument(
-        "--out", type=Path, default=ROOT / "torchfit" / "body" / "priors" / "ansur2.json"
+        "--ansur",
+        type=Path,
+        default=ROOT.parent / "shared" / "data" / "ansur2",
+        help="folder of the ANSUR II CSV files (default ../shared/data/ansur2)",
     )
-    parser.add_argument("--calibrate", type=Path, help="a development set (truth.json)")
-    parser.add_argument("--template", default="mpeg4_full")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=ROOT / "torchfit" / "body" / "priors" / "ansur2.json",
+        help="the prior file to write (default: the shipped torchfit/body/priors/ansur2.json)",
+    )
+    parser.add_argument(
+        "--calibrate",
+        type=Path,
+        help="a development set (subjects with truth.json) to calibrate the prior on",
+    )
+    parser.add_argument(
+        "--template", default="mpeg4_full", help="the template whose scales the prior is over"
+    )
     args = parser.parse_args()
     if not (args.ansur / "ANSUR_II_MALE_Public.csv").is_file():
         sys.stderr.write(f"no ANSUR II files in {args.ansur}\n")

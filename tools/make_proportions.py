@@ -87,9 +87,19 @@ def derive(folder: Path) -> list[dict[str, str]]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--ansur", type=Path, default=ROOT.parent / "shared" / "data" / "ansur2")
+    parser.add_argument(
+        "--ansur",
+        type=Path,
+        default=ROOT.parent / "shared" / "data" / "ansur2",
+        help="folder of the ANSUR II CSV files (default ../shared/data/ansur2)",
+    )
     default_out = ROOT / "torchfit" / "pipeline" / "proportions.csv"
-    parser.add_argument("--out", type=Path, default=default_out)
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=default_out,
+        help="the table to write (default: the shipped torchfit/pipeline/proportions.csv)",
+    )
     args = parser.parse_args()
     if not (args.ansur / "ANSUR_II_MALE_Public.csv").is_file():
         sys.stderr.write(f"no ANSUR II files in {args.ansur}\n")

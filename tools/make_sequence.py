@@ -25,7 +25,7 @@ from torchfit.synth.options import SynthConfig
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--bvh", required=True, help="motion clip (.bvh, or .amc with its .asf)")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--frames", type=int, required=True, help="frames to render")
