@@ -15,7 +15,7 @@ from torchfit.camera import camera_centre, project_points, stack_cameras
 from torchfit.errors import ConfigError
 from torchfit.fit import FitOptions, person_data_from_masks
 from torchfit.fit.bends import BendFit, BendOptions
-from torchfit.fit.problem import pixels_per_metre
+from torchfit.fit.options import pixels_per_metre
 from torchfit.viz.preview import nominal_view
 from torchfit.viz.raster import render_silhouette
 

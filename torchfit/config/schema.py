@@ -248,7 +248,7 @@ class FitConfig(FitOptions):
         reference_px_per_m: the image residuals, the robust loss's scale and the pixel limits
             (``max_contour_rms_px``, ``pose_outlier_min_px``, ``bends.max_shift_px`` and
             ``bends.shown_px``) are in pixels of a camera that sees this many pixels per metre
-            at the person (:func:`torchfit.fit.problem.pixels_per_metre`), so that the priors
+            at the person (:func:`torchfit.fit.options.pixels_per_metre`), so that the priors
             weigh the same against the images on any camera. 210: the development sets'
             cameras (720x576, 197-223 pixels per metre), on which every weight was chosen; a
             1920x1080 camera framing the same view sees about 390. ``null``: the image's own

@@ -3,6 +3,7 @@ that the image residuals are measured against (:func:`pixels_per_metre`)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -74,7 +75,7 @@ class FitOptions:
 
     def __post_init__(self) -> None:
         ref = self.reference_px_per_m
-        if ref is not None and not (ref > 0 and ref != float("inf")):
+        if ref is not None and not (math.isfinite(ref) and ref > 0):
             raise ConfigError(f"fit.reference_px_per_m: expected a number > 0 or null, got {ref!r}")
         poses = list(self.poses)
         if not poses or len(set(poses)) != len(poses) or not set(poses) <= set(range(1, 7)):

@@ -35,8 +35,8 @@ from torchfit.fit.pose import Poser, free_joints_for, nominal_angles
 from torchfit.fit.residuals import barrier, model_to_person, person_to_model
 from torchfit.image.distance import sample_distance_map
 
-# FitOptions and pixels_per_metre live in torchfit.fit.options; imported from here too
-__all__ = ["FitOptions", "SilhouetteFit", "pixels_per_metre"]
+# FitOptions lives in torchfit.fit.options; importable from here as before
+__all__ = ["FitOptions", "SilhouetteFit"]
 
 
 class SilhouetteFit:
