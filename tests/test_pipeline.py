@@ -137,20 +137,16 @@ def test_fit_cli_stops_on_a_posture_prior_joint_the_template_lacks(dataset, tmp_
 
 
 def test_measure_stereo_cli_says_when_no_subject_has_a_pair(dataset, tmp_path):
-    # the template subjects have no stereo/ folder: each is skipped, and the tool says so
-    # instead of reporting them as measured
+    # the template subjects have no stereo/ folder: the tool says so and writes nothing,
+    # instead of a run of skipped subjects
     out = tool(
         "measure_stereo.py",
         *("--config", REPO / "configs" / "stereo.yaml"),
         *("--data", dataset, "--out", tmp_path / "stereo"),
     )
     assert out.returncode == 2, out.stderr
-    assert "0 of 3 subjects measured, 0 failed, 3 skipped" in out.stdout
-    assert "no subject has a stereo pair" in out.stderr
-    with open(tmp_path / "stereo" / "summary.csv") as fh:
-        rows = list(csv.DictReader(fh))
-    assert [r["status"] for r in rows] == ["skipped"] * 3
-    assert all("stereo/" in r["message"] for r in rows)
+    assert f"no subject in {dataset} has a usable stereo/ folder" in out.stderr
+    assert not (tmp_path / "stereo").exists()
 
 
 class _Bar:

@@ -69,6 +69,15 @@ def main(argv: list[str] | None = None) -> int:
     except TorchfitError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if all(s.stereo is None for s in subjects):  # nothing to measure: nothing is written
+        why = [f"  {s.name}: {w}" for s in subjects for w in s.warnings if "stereo" in w]
+        print(
+            f"error: no subject in {config.data.root} has a usable stereo/ folder (cameras.yaml, "
+            "left and right images, background/left/ and background/right/; design.md section "
+            "7)" + "".join("\n" + line for line in why),
+            file=sys.stderr,
+        )
+        return 2
     out = run_folder(config)
     try:
         return _measure(config, subjects, out)
@@ -136,9 +145,6 @@ def _measure(config, subjects, out: Path) -> int:
     measured = len(rows) - failed - skipped
     note = f", {skipped} skipped (no usable stereo/ folder)" if skipped else ""
     print(f"{measured} of {len(rows)} subjects measured, {failed} failed{note}; results in {out}")
-    if not measured and skipped:
-        print("error: no subject has a stereo pair to measure", file=sys.stderr)
-        return 2
     return 1 if failed else 0
 
 
