@@ -11,7 +11,7 @@ import torch
 from torchfit.camera import Camera, camera_centre
 from torchfit.errors import ConfigError
 
-__all__ = ["FitOptions", "pixels_per_metre"]
+__all__ = ["FitOptions", "pixels_per_metre", "image_scale"]
 
 
 @dataclass(frozen=True)
@@ -100,3 +100,11 @@ def pixels_per_metre(camera: Camera) -> torch.Tensor:
     middle = torch.tensor([0.0, 0.0, 1.0], dtype=centre.dtype, device=centre.device)
     focal = 0.5 * (camera.K[:, 0, 0] + camera.K[:, 1, 1])
     return focal / (centre - middle).norm(dim=-1)
+
+
+def image_scale(camera: Camera, reference_px_per_m: float | None) -> torch.Tensor:
+    """(B,) reference pixels per image pixel of each camera: ``reference_px_per_m /``
+    :func:`pixels_per_metre`, or ones where ``reference_px_per_m`` is None (image pixels)."""
+    if reference_px_per_m is None:
+        return torch.ones(camera.K.shape[0], dtype=camera.K.dtype, device=camera.K.device)
+    return reference_px_per_m / pixels_per_metre(camera)

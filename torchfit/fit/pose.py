@@ -156,14 +156,18 @@ class Poser:
         return self._on_floor(self.state(full, j, rows), vertex_index)
 
     def world_postures(
-        self, full: torch.Tensor, poses: list[int], rows: torch.Tensor
+        self,
+        full: torch.Tensor,
+        poses: list[int],
+        rows: torch.Tensor,
+        vertex_index: torch.Tensor | None = None,
     ) -> list[torch.Tensor]:
-        """Every template vertex of several postures, standing on the floor, from one model
-        call over all their rows (the kinematics' cost is mostly per call): per posture in
-        ``poses``, the (N, V, 3) vertices :meth:`world` gives with ``vertex_index=None``."""
+        """The vertices of several postures, standing on the floor, from one model call over
+        all their rows (the kinematics' cost is mostly per call): per posture in ``poses``,
+        the (N, K, 3) vertices :meth:`world` gives (``vertex_index`` (K,), default: all)."""
         states = [self.state(full, j, rows) for j in poses]
         state = tuple(torch.cat(part) for part in zip(*states, strict=True))
-        return list(self._on_floor(state, None)[0].split(full.shape[0]))
+        return list(self._on_floor(state, vertex_index)[0].split(full.shape[0]))
 
     def _on_floor(
         self, state: tuple, vertex_index: torch.Tensor | None

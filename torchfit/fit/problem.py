@@ -29,7 +29,7 @@ from torchfit.fit.model_contour import (
     point_to_edge_distance,
     select_contours,
 )
-from torchfit.fit.options import FitOptions, pixels_per_metre
+from torchfit.fit.options import FitOptions, image_scale
 from torchfit.fit.person import PersonData
 from torchfit.fit.pose import Poser, free_joints_for, nominal_angles
 from torchfit.fit.residuals import barrier, model_to_person, person_to_model
@@ -90,9 +90,7 @@ class SilhouetteFit:
         #: (B, J) weight of each posture's residuals (e_P and e_M), 1 unless down-weighted.
         self.pose_weights = torch.ones(self.batch, len(self.poses), **kw)
         #: (B,) reference pixels per image pixel (``options.reference_px_per_m``; 1 without)
-        self.image_scale = torch.ones(self.batch, **kw)
-        if options.reference_px_per_m is not None:
-            self.image_scale = options.reference_px_per_m / pixels_per_metre(self.camera)
+        self.image_scale = image_scale(self.camera, options.reference_px_per_m).to(**kw)
         #: (parameters, rows, choice) of the last :meth:`select`
         self._last_choice: tuple | None = None
 
@@ -268,13 +266,37 @@ class SilhouetteFit:
         self, full: torch.Tensor, j: int, rows: torch.Tensor, selection: ContourSelection
     ) -> torch.Tensor:
         """[e_P (C_j entries), e_M] of pose j for rows ``full`` (N, P) -> (N, C_j + 1)."""
-        k = self.poses.index(j)
-        ends, vidx, lookup = self._prepare(selection)
-        pixels = self.pose_pixels(full, j, rows, vidx)
-        e_p, e_m = self._pose_terms(
-            k, rows, ends, selection, self._endpoint_pixels(pixels, lookup, ends)
-        )
+        prepared = self._prepare(selection)
+        pixels = self.pose_pixels(full, j, rows, prepared[1])
+        return self._image_part(self.poses.index(j), rows, selection, prepared, pixels)
+
+    def _image_part(
+        self,
+        k: int,
+        rows: torch.Tensor,
+        selection: ContourSelection,
+        prepared: tuple[ContourEndpoints, torch.Tensor, torch.Tensor],
+        pixels: torch.Tensor,
+    ) -> torch.Tensor:
+        """[e_P, e_M] of pose index k from the (N, K, 2) pixels of its contour vertices."""
+        ends, _, lookup = prepared
+        pix = self._endpoint_pixels(pixels, lookup, ends)
+        e_p, e_m = self._pose_terms(k, rows, ends, selection, pix)
         return torch.cat([e_p, e_m[:, None]], dim=1) * self.image_weights(rows, k)
+
+    def _postures_pixels(
+        self, full: torch.Tensor, rows: torch.Tensor, vertex_index: list[torch.Tensor]
+    ) -> list[torch.Tensor]:
+        """Per posture, the (N, K_k, 2) pixels of its ``vertex_index[k]`` (as
+        :meth:`pose_pixels` gives them), from one model call and one projection over all the
+        postures' rows and the union of their vertices."""
+        union = torch.unique(torch.cat(vertex_index))
+        posed = self.poser.world_postures(full, list(self.poses), rows, union)
+        n = len(self.poses)
+        pixels = self.project(torch.cat(posed), rows.repeat(n)).split(full.shape[0])
+        return [
+            p[:, torch.searchsorted(union, v)] for p, v in zip(pixels, vertex_index, strict=True)
+        ]
 
     def image_weights(self, rows: torch.Tensor, k: int) -> torch.Tensor:
         """(N, 1) the factor of pose index k's image residuals in rows ``rows``: its posture
@@ -328,7 +350,12 @@ class SilhouetteFit:
         if rows is None:
             rows = torch.arange(full.shape[0], device=full.device)
         selections = selections or self.select(full, rows)
-        parts = [self.pose_residual(full, j, rows, selections[j]) for j in self.poses]
+        prepared = [self._prepare(selections[j]) for j in self.poses]
+        pixels = self._postures_pixels(full, rows, [p[1] for p in prepared])
+        parts = [
+            self._image_part(k, rows, selections[j], prepared[k], pixels[k])
+            for k, j in enumerate(self.poses)
+        ]
         parts.append(self.barrier_residual(full))
         return torch.cat(parts, 1)
 

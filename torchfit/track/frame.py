@@ -22,6 +22,7 @@ import torch
 from torchfit.body.model import BodyModel
 from torchfit.camera import Camera
 from torchfit.fit.model_contour import EdgeSampler, select_contour
+from torchfit.fit.options import image_scale
 from torchfit.fit.person import PersonData
 from torchfit.solver import LMOptions, levenberg_marquardt
 from torchfit.track.options import PoseLayout, TrackOptions
@@ -37,15 +38,22 @@ class FrameResult:
     Attributes:
         x: (B, P) fitted pose rows.
         cost: (B,) final cost ``0.5 |r|²``.
-        contour_rms: (B,) RMS of e_P (pixels): how far the person contour lies from the
-            model's.
+        contour_rms: (B,) RMS of e_P in the image's pixels: how far the person contour lies
+            from the model's.
         iterations: (B,) LM iterations over all rounds.
+        image_scale: (B,) reference pixels per image pixel (``reference_px_per_m``).
     """
 
     x: torch.Tensor
     cost: torch.Tensor
     contour_rms: torch.Tensor
     iterations: torch.Tensor
+    image_scale: torch.Tensor
+
+    @property
+    def reference_rms(self) -> torch.Tensor:
+        """(B,) :attr:`contour_rms` in reference pixels (what the tracker's limits read)."""
+        return self.contour_rms * self.image_scale
 
 
 def solve_frame(
@@ -84,6 +92,7 @@ def solve_frame(
     )
     cost = torch.zeros(x.shape[0], dtype=x.dtype)
     target = _depth_target(model, scales, camera, prediction, layout)
+    scale = image_scale(camera, options.reference_px_per_m).to(x)
     residual = None
     for _ in range(options.rounds):
         with torch.no_grad():
@@ -91,7 +100,9 @@ def solve_frame(
         sel = select_contour(
             sampler, pix, person.contours[0], person.valid[0], camera.image_size, 1.0
         )
-        problem = _FrameResidual(model, scales, person, layout, prediction, sampler, sel, target)
+        problem = _FrameResidual(
+            model, scales, person, layout, prediction, sampler, sel, target, scale
+        )
         res = levenberg_marquardt(
             problem,
             x,
@@ -105,7 +116,8 @@ def solve_frame(
         )
         x, cost, residual = res.x, res.cost, res.residual
         iterations += res.n_iter.cpu().long()
-    # the solver's last residual is the one at x: e_P leads it, already over sqrt(|C_P|)
+    # the solver's last residual is the one at x: e_P leads it, already over sqrt(|C_P|), in
+    # reference pixels
     e_p = residual[:, : person.contours[0].shape[1]]
-    rms = (e_p * e_p).sum(1).sqrt()
-    return FrameResult(x=x, cost=cost, contour_rms=rms, iterations=iterations)
+    rms = (e_p * e_p).sum(1).sqrt() / scale
+    return FrameResult(x=x, cost=cost, contour_rms=rms, iterations=iterations, image_scale=scale)

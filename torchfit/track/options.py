@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass
 
 import torch
 
 from torchfit.body.model import BodyModel
+from torchfit.errors import ConfigError
 
 __all__ = ["TrackOptions", "PoseLayout", "LOST_CONFIDENCE"]
 
@@ -84,6 +86,13 @@ class TrackOptions:
         jacobian: ``analytic`` (the pose derivatives in closed form, one model call per
             Jacobian: the fastest), ``batched`` (forward differences, all the perturbed rows in
             one model call) or a solver Jacobian (``forward``, ``numeric``).
+        reference_px_per_m: the contour terms (e_P, e_M) are in pixels of a camera that sees
+            this many pixels per metre at the person (1 m above the floor mark,
+            :func:`torchfit.fit.options.pixels_per_metre`), as the fit's are
+            (``fit.reference_px_per_m``): the weights above ("pixels per ...") and the pixel
+            limits ``recover_min_px`` and ``confidence_px`` then mean the same on a camera of
+            any resolution. ``contour_rms`` in the frame records stays in the image's pixels;
+            ``distance_margin_px`` is the image's. ``None``: everything in the image's pixels.
     """
 
     iterations: int = 8
@@ -109,6 +118,14 @@ class TrackOptions:
     turn_velocity: float = 1.0
     turn_smoothing: float = 0.6
     turn_dead_deg: float = 2.0
+    reference_px_per_m: float | None = 210.0
+
+    def __post_init__(self) -> None:
+        ref = self.reference_px_per_m
+        if ref is not None and not (math.isfinite(ref) and ref > 0):
+            raise ConfigError(
+                f"track.reference_px_per_m: expected a number > 0 or null, got {ref!r}"
+            )
 
 
 class PoseLayout:

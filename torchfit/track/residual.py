@@ -46,8 +46,13 @@ def _depth_target(model, scales, camera, prediction, layout):
 class _FrameResidual:
     """The residuals of one frame for a fixed model-contour choice (rows by problem index)."""
 
-    def __init__(self, model, scales, person, layout, prediction, sampler, selection, target=None):
+    def __init__(
+        self, model, scales, person, layout, prediction, sampler, selection, target=None, scale=None
+    ):
         self.model, self.scales, self.layout = model, scales, layout
+        if scale is None:  # the image's pixels
+            scale = torch.ones(scales.shape[0], dtype=scales.dtype, device=scales.device)
+        self.scale = scale  # (B,) reference pixels per image pixel
         if target is None:  # the limbs' rays and depths (:func:`_depth_target`)
             target = _depth_target(model, scales, person.camera, prediction, layout)
         self.camera = person.camera
@@ -76,7 +81,7 @@ class _FrameResidual:
         self._picked: dict[tuple, dict] = {}  # index -> the per-row data of those rows
 
     _PER_ROW = ("scales", "pa", "pb", "ma", "mb", "mt", "pt", "contours", "valid")
-    _PER_ROW += ("sample_valid", "n_model", "n_person", "prediction", "rays", "depth")
+    _PER_ROW += ("sample_valid", "n_model", "n_person", "prediction", "rays", "depth", "scale")
 
     def _at(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
         """The per-row data of the rows ``index``, taken once per index set."""
@@ -99,18 +104,20 @@ class _FrameResidual:
     def _contour_terms(
         self, ends: dict[str, torch.Tensor], index: torch.Tensor, rows: dict
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """e_P (N, C) and e_M (N, n_m) from the endpoint pixels (padding is zero)."""
+        """e_P (N, C) and e_M (N, n_m) from the endpoint pixels (padding is zero), in reference
+        pixels (each row's ``scale``)."""
         dtype = ends["pa"].dtype
+        scale = rows["scale"][:, None].to(dtype)
         t = rows["mt"][..., None].to(dtype)
         points = ends["ma"] * (1 - t) + ends["mb"] * t
         d_m = sample_distance_map(self.dist, points, rows=index)
         e_m = torch.where(rows["sample_valid"], d_m, torch.zeros_like(d_m))
-        e_m = e_m / rows["n_model"][:, None].to(dtype).sqrt()
+        e_m = e_m * scale / rows["n_model"][:, None].to(dtype).sqrt()
         d_p = point_to_edge_distance(
             rows["contours"], ends["pa"], ends["pb"], rows["pt"], self.half
         )
         e_p = torch.where(rows["valid"], d_p, torch.zeros_like(d_p))
-        e_p = e_p / rows["n_person"][:, None].to(dtype).sqrt()
+        e_p = e_p * scale / rows["n_person"][:, None].to(dtype).sqrt()
         return e_p, e_m
 
     def _mask(self, rows: dict) -> torch.Tensor:

@@ -145,7 +145,7 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
     for rows in torch.arange(b * n).split(_START_ROWS // n * n or n):
         res = solve_frame(model, sc[rows], person.subset(rows), layout, x0[rows], x0[rows], opts)
         xs.append(res.x)
-        rms.append(res.contour_rms)
+        rms.append(res.reference_rms)
     x, rms = torch.cat(xs), torch.cat(rms).reshape(b, 2, n // 2)
     # the floor placement unless the sized one explains the silhouette far better (someone
     # standing fits both, and their contours do not tell a lean or a depth apart)

@@ -18,7 +18,8 @@ its last good frame (or its start), pulled towards that frame (not the extrapola
 with twice the iterations; the frame's status is ``recovered`` when that brings it back
 under the threshold, ``uncertain`` otherwise; after either the velocity is reset (the next
 frame starts from this pose, not an extrapolation of a bad one), so one bad frame does not
-throw the next ones. ``confidence = 1 / (1 + (rms / confidence_px)²)``: a single
+throw the next ones. ``confidence = 1 / (1 + (rms / confidence_px)²)``. The RMS these read is
+in reference pixels (``reference_px_per_m``), the records' ``contour_rms`` in the image's. A single
 camera cannot tell some poses apart (an arm in front of or behind the body), and the contour
 RMS cannot either; the confidence says how well the silhouette is explained, not which of
 those poses is right.
@@ -152,7 +153,9 @@ def track(
             max(options.recover_min_px, options.recover_factor * _median(h)) if h else first
             for h in history
         ]
-        bad = [i for i in range(b) if float(res.contour_rms[i]) > limit[i]]
+        # the limits, the history and the confidence are in reference pixels
+        ref = res.reference_rms
+        bad = [i for i in range(b) if float(ref[i]) > limit[i]]
         if bad:
             idx = torch.tensor(bad)
             sub = person.subset(idx)
@@ -167,16 +170,17 @@ def track(
                 sampler,
             )
             for k, i in enumerate(bad):
-                better = float(again.contour_rms[k]) < float(res.contour_rms[i])
+                better = float(again.reference_rms[k]) < float(ref[i])
                 if better:
                     res.x[i] = again.x[k]
                     res.contour_rms[i] = again.contour_rms[k]
+                    ref[i] = again.reference_rms[k]
                     res.cost[i] = again.cost[k]
                 res.iterations[i] += again.iterations[k]
-                status[i] = "recovered" if float(res.contour_rms[i]) <= limit[i] else "uncertain"
+                status[i] = "recovered" if float(ref[i]) <= limit[i] else "uncertain"
         ms = 1000 * (time.perf_counter() - t0) / b
         for i in range(b):
-            rms = float(res.contour_rms[i])
+            rms = float(ref[i])
             if status[i] != "uncertain":
                 history[i].append(rms)
                 good[i] = res.x[i]
@@ -187,7 +191,7 @@ def track(
                     cost=float(res.cost[i]),
                     iterations=int(res.iterations[i]),
                     ms=ms,
-                    contour_rms=rms,
+                    contour_rms=float(res.contour_rms[i]),
                     confidence=1.0 / (1.0 + (rms / options.confidence_px) ** 2),
                     x=res.x[i].detach().clone(),
                 )
