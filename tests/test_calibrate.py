@@ -23,14 +23,15 @@ SIZE = (720, 576)
 BOARD = Board(9, 6, 0.06)
 
 
-def _random_camera(rng: np.random.Generator) -> Camera:
+def _random_camera(rng: np.random.Generator, size: tuple[int, int] = SIZE) -> Camera:
     """A camera the test does not choose: focal length, principal point, distortion and
-    position drawn from a seeded generator."""
-    f = rng.uniform(650.0, 1000.0)
+    position drawn from a seeded generator (the focal length in proportion to the image's
+    height)."""
+    f = rng.uniform(650.0, 1000.0) * size[1] / SIZE[1]
     K = np.array(
         [
-            [f, 0.0, SIZE[0] / 2 + rng.uniform(-20, 20)],
-            [0.0, f * rng.uniform(0.995, 1.005), SIZE[1] / 2 + rng.uniform(-20, 20)],
+            [f, 0.0, size[0] / 2 + rng.uniform(-20, 20)],
+            [0.0, f * rng.uniform(0.995, 1.005), size[1] / 2 + rng.uniform(-20, 20)],
             [0.0, 0.0, 1.0],
         ]
     )
@@ -46,33 +47,34 @@ def _random_camera(rng: np.random.Generator) -> Camera:
         dist=torch.from_numpy(dist),
         R=R[0].double(),
         t=t[0].double(),
-        image_size=SIZE,
+        image_size=size,
     )
 
 
 def _render(camera: Camera, folder: Path, rng: np.random.Generator, n: int = 14) -> Path:
     K, dist = camera.K[0].numpy(), camera.dist[0].numpy()
+    size = camera.image_size
     # the board (with its margin) across 40 to 65 % of the image's width
     width_m = (BOARD.cols + 2.6) * BOARD.square_m
-    near, far = (K[0, 0] * width_m / (SIZE[0] * share) for share in (0.65, 0.4))
+    near, far = (K[0, 0] * width_m / (size[0] * share) for share in (0.65, 0.4))
     for k in range(n):
         rvec, tvec = random_board_pose(
-            rng, K, SIZE, BOARD.cols, BOARD.rows, BOARD.square_m, distance=(near, far)
+            rng, K, size, BOARD.cols, BOARD.rows, BOARD.square_m, distance=(near, far)
         )
-        image = render_board(K, dist, rvec, tvec, BOARD.cols, BOARD.rows, BOARD.square_m, SIZE, rng)
+        image = render_board(K, dist, rvec, tvec, BOARD.cols, BOARD.rows, BOARD.square_m, size, rng)
         write_image(folder / "boards" / f"board{k:02d}.png", image)
     rvec, tvec = floor_board_pose(
         camera.R[0].numpy(), camera.t[0].numpy(), BOARD.cols, BOARD.rows, BOARD.square_m
     )
-    image = render_board(K, dist, rvec, tvec, BOARD.cols, BOARD.rows, BOARD.square_m, SIZE, rng)
+    image = render_board(K, dist, rvec, tvec, BOARD.cols, BOARD.rows, BOARD.square_m, size, rng)
     write_image(folder / "floor.png", image)
     return folder
 
 
-@pytest.mark.parametrize("seed", [101, 202, 303])
-def test_calibration_recovers_a_known_camera(tmp_path, seed):
+@pytest.mark.parametrize("seed,size", [(101, SIZE), (202, SIZE), (303, SIZE), (404, (1920, 1080))])
+def test_calibration_recovers_a_known_camera(tmp_path, seed, size):
     rng = np.random.default_rng(seed)
-    truth = _random_camera(rng)
+    truth = _random_camera(rng, size)
     folder = _render(truth, tmp_path, rng)
     result = calibrate(BOARD, folder / "floor.png", sorted((folder / "boards").glob("*.png")))
     assert len(result.used) >= 8, result.without_board
@@ -99,6 +101,27 @@ def test_calibration_recovers_a_known_camera(tmp_path, seed):
     strict = calibrate(BOARD, folder / "floor.png", intrinsics=loaded, max_rms_px=1e-4)
     assert len(strict.warnings) == 1 and "floor image reprojection RMS" in strict.warnings[0]
     assert torch.linalg.vector_norm(again.camera.centre - truth.centre) < 0.01
+
+
+def test_a_board_the_image_frame_cuts_is_not_found(tmp_path):
+    """A 1920x1080 view whose board runs off the bottom of the image: OpenCV returns the whole
+    grid with the cut-off corners on the frame (one 8-10 px from its true place, which moved
+    that calibration's principal point by 6 px); find_corners reports no board there, and one
+    where the board is in view."""
+    rng = np.random.default_rng(2009)
+    size = (1920, 1080)
+    camera = _random_camera(rng, size)
+    folder = _render(camera, tmp_path, rng, n=4)
+    cut = read_image(folder / "boards" / "board03.png")
+    grey = cut.mean(axis=2).astype(np.uint8)
+    import cv2
+
+    # OpenCV alone finds the whole grid, its last row on the frame
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    found, corners = cv2.findChessboardCorners(grey, (BOARD.cols, BOARD.rows), flags=flags)
+    assert found and corners[..., 1].max() > size[1] - 12, corners[..., 1].max()
+    assert find_corners(cut, BOARD) is None
+    assert find_corners(read_image(folder / "boards" / "board00.png"), BOARD) is not None
 
 
 def test_the_corner_order_is_canonical_under_a_half_turn(tmp_path):

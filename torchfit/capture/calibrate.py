@@ -45,6 +45,11 @@ __all__ = [
 #: Fewest images with a board found that an intrinsic calibration needs.
 MIN_BOARD_IMAGES = 5
 
+#: The board is searched for in a copy of the image at most this many pixels wide and high
+#: (the corners are then refined at full resolution): on larger images OpenCV's search took up
+#: to 20 s per image and missed boards it finds in the smaller copy.
+DETECT_MAX_PX = 1280
+
 
 @dataclass(frozen=True)
 class Board:
@@ -125,13 +130,21 @@ def find_corners(image: np.ndarray, board: Board) -> np.ndarray | None:
 
     Returns:
         (cols * rows, 1, 2) float32 pixel positions in the canonical order of the module
-        docstring, or None where the whole board was not found.
+        docstring, or None where the whole board was not found, or where a corner lies within the
+        refinement window of the image frame (a board the frame cuts).
     """
     grey = _grey(image)
+    h, w = grey.shape
+    shrink = min(1.0, DETECT_MAX_PX / max(h, w))
+    search = grey
+    if shrink < 1.0:
+        search = cv2.resize(grey, None, fx=shrink, fy=shrink, interpolation=cv2.INTER_AREA)
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-    found, corners = cv2.findChessboardCorners(grey, (board.cols, board.rows), flags=flags)
+    found, corners = cv2.findChessboardCorners(search, (board.cols, board.rows), flags=flags)
     if not found:
         return None
+    if shrink < 1.0:  # back to full-resolution pixels (pixel centres at integers)
+        corners = ((corners + 0.5) / shrink - 0.5).astype(np.float32)
     # the refinement window: under half the smallest spacing between neighbouring corners
     pts = corners.reshape(board.rows, board.cols, 2)
     spacing = min(
@@ -141,6 +154,12 @@ def find_corners(image: np.ndarray, board: Board) -> np.ndarray | None:
     half = int(max(2, min(11, spacing * 0.4)))
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
     corners = cv2.cornerSubPix(grey, corners, (half, half), (-1, -1), criteria)
+    # a board the image frame cuts: OpenCV may still return the whole grid, its cut-off
+    # corners placed on the frame (one was 8 px off its true place): not a board found
+    xy = corners.reshape(-1, 2)
+    inside = (xy >= half) & (xy <= np.array([w - 1 - half, h - 1 - half]))
+    if not inside.all():
+        return None
     return _canonical(corners, grey, board)
 
 
