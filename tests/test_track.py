@@ -365,24 +365,36 @@ def test_analytic_frame_jacobian_matches_central_differences(model, camera, dept
     assert err.max() < 1e-4 * (1 + jac[keep].abs().max()), err.max()
 
 
-def test_the_frame_jacobian_reuses_the_residuals_pass_only_at_its_point(model, camera, monkeypatch):
-    """After the residual at x, the Jacobian at x takes that evaluation's kinematics pass;
-    at any other point it makes its own. Either way it is the Jacobian a fresh problem gives,
-    bit for bit."""
+def _one_frame(model, camera, opts, offset):
+    """One frame of the left arm raised: the layout, the true pose row, the person data, a
+    start ``truth + offset(truth)`` within the limits, unit scales, the edge sampler and the
+    model-contour choice at the start."""
     from torchfit.fit.model_contour import EdgeSampler, select_contour
-    from torchfit.track.residual import _FrameResidual, _pixels
+    from torchfit.track.residual import _pixels
 
-    opts = TrackOptions()
     layout = PoseLayout(model, opts)
     truth = _pose(model, layout, camera, {"l_shoulder_abduct": 0.8})[None]
     person = person_data_from_masks(_masks(model, camera, truth)[:, None], camera, stride=3)
-    g = torch.Generator().manual_seed(3)
-    x = layout.clip(truth + 0.03 * torch.randn(truth.shape, generator=g, dtype=torch.float64))
-    other = layout.clip(x + 0.01)
+    x = layout.clip(truth + offset(truth))
     scales = torch.ones(1, model.num_segments, 3, dtype=torch.float64)
     sampler = EdgeSampler(model.faces, opts.samples_per_edge)
     pix = _pixels(model, scales, camera, x, None)
     sel = select_contour(sampler, pix, person.contours[0], person.valid[0], SIZE, 1.0)
+    return layout, truth, person, x, scales, sampler, sel
+
+
+def test_the_frame_jacobian_reuses_the_residuals_pass_only_at_its_point(model, camera, monkeypatch):
+    """After the residual at x, the Jacobian at x takes that evaluation's kinematics pass;
+    at any other point it makes its own. Either way it is the Jacobian a fresh problem gives,
+    bit for bit."""
+    from torchfit.track.residual import _FrameResidual
+
+    opts = TrackOptions()
+    g = torch.Generator().manual_seed(3)
+    layout, truth, person, x, scales, sampler, sel = _one_frame(
+        model, camera, opts, lambda t: 0.03 * torch.randn(t.shape, generator=g, dtype=t.dtype)
+    )
+    other = layout.clip(x + 0.01)
     rows = torch.arange(1)
 
     def problem():
@@ -505,19 +517,14 @@ def test_the_contour_terms_are_in_reference_pixels_and_the_rest_is_not(model, ca
     pixels times its ``scale``, every other term is untouched; a frame solved at twice the
     camera's resolution reports its contour RMS in its own pixels and reads the limits in
     reference pixels (``FrameResult.reference_rms``)."""
-    from torchfit.fit.model_contour import EdgeSampler, select_contour
+    from torchfit.fit.model_contour import select_contour
     from torchfit.fit.options import pixels_per_metre
     from torchfit.track.residual import _FrameResidual, _pixels
 
     opts = TrackOptions()
-    layout = PoseLayout(model, opts)
-    truth = _pose(model, layout, camera, {"l_shoulder_abduct": 0.8})[None]
-    person = person_data_from_masks(_masks(model, camera, truth)[:, None], camera, stride=3)
-    x = layout.clip(truth + 0.02)
-    scales = torch.ones(1, model.num_segments, 3, dtype=torch.float64)
-    sampler = EdgeSampler(model.faces, opts.samples_per_edge)
-    pix = _pixels(model, scales, camera, x, None)
-    sel = select_contour(sampler, pix, person.contours[0], person.valid[0], SIZE, 1.0)
+    layout, truth, person, x, scales, sampler, sel = _one_frame(
+        model, camera, opts, lambda t: torch.full_like(t, 0.02)
+    )
     rows = torch.arange(1)
     args = (model, scales, person, layout, truth, sampler, sel, None)
     plain = _FrameResidual(*args)
