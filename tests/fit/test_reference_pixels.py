@@ -7,6 +7,8 @@ the fit's own rasteriser in posture 3 (whose knee is marked) through two cameras
 only in resolution: the second has twice the focal length and twice the image size.
 """
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -101,3 +103,31 @@ def test_a_bad_reference_is_named():
     for bad in (0.0, -3.0, float("inf")):
         with pytest.raises(ConfigError, match="reference_px_per_m"):
             FitOptions(reference_px_per_m=bad)
+
+
+def test_the_pixel_noise_ratio_lies_between_reference_and_image_pixels():
+    """``pixel_noise_ratio`` ρ: the factor is 1 at the reference camera, reference pixels at
+    ρ = 0, the image's own pixels as ρ grows, and between the two otherwise."""
+    from torchfit.fit.options import image_scale
+
+    low, high = stack_cameras([_camera(1.0)]), stack_cameras([_camera(2.0)])
+    cameras = dataclasses.replace(
+        high,
+        K=torch.cat([low.K, high.K]),
+        dist=torch.cat([low.dist, high.dist]),
+        R=torch.cat([low.R, high.R]),
+        t=torch.cat([low.t, high.t]),
+    )  # two resolutions in one batch: only their K and pose are read here
+    ppm = pixels_per_metre(cameras)
+    reference = image_scale(cameras, float(ppm[0]))
+    torch.testing.assert_close(reference, torch.tensor([1.0, 0.5], dtype=torch.float64))
+    torch.testing.assert_close(image_scale(cameras, float(ppm[0]), 0.0), reference)
+    torch.testing.assert_close(
+        image_scale(cameras, float(ppm[0]), 1e6), torch.ones(2, dtype=torch.float64)
+    )
+    blend = image_scale(cameras, float(ppm[0]), 1.0)
+    torch.testing.assert_close(blend, torch.tensor([1.0, (2 / 5) ** 0.5], dtype=torch.float64))
+    assert 0.5 < float(blend[1]) < 1.0
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ConfigError, match="pixel_noise_ratio"):
+            FitOptions(pixel_noise_ratio=bad)

@@ -253,6 +253,10 @@ class FitConfig(FitOptions):
             cameras (720x576, 197-223 pixels per metre), on which every weight was chosen; a
             1920x1080 camera framing the same view sees about 390. ``null``: the image's own
             pixels (each camera's resolution then changes the balance).
+        pixel_noise_ratio: ``null`` (default) or ``ρ`` >= 0: the image residuals' factor
+            ``sqrt((ρ² + 1) / (ρ² + (p / reference_px_per_m)²))`` instead of ``reference_px_per_m
+            / p`` (``p`` the camera's pixels per metre), for contour errors partly of a fixed
+            size in the image's pixels (:class:`torchfit.fit.FitOptions`).
         prior: the population prior over the log scales and the weight of a known height
             (:class:`torchfit.fit.prior.PriorOptions`; ``subject.yaml`` gives the facts).
         bends: the bent-joint marks (:class:`torchfit.fit.bends.BendOptions`): the flexed

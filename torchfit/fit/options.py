@@ -54,6 +54,13 @@ class FitOptions:
             priors and barriers against the images, the robust loss's scale and the
             pipeline's pixel limits mean the same on any camera. ``None``: the image's own
             pixels.
+        pixel_noise_ratio: ``ρ``, the contour error's part of a fixed size in the image's
+            pixels (the outline's pixels, the segmentation's edge) over its part of a fixed
+            size in metres (the template's shape against the body's), at the reference camera.
+            With it the image residuals are multiplied by ``sqrt((ρ² + 1) / (ρ² + (p /
+            reference_px_per_m)²))`` (``p`` the camera's :func:`pixels_per_metre`) instead:
+            between reference pixels (``ρ`` = 0) and the image's own (``ρ`` large), the same
+            at the reference camera. ``None``: reference pixels alone.
     """
 
     poses: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
@@ -72,11 +79,15 @@ class FitOptions:
     pose_outlier_min_px: float = 3.0
     pose_outlier_weight: float = 0.1
     reference_px_per_m: float | None = None
+    pixel_noise_ratio: float | None = None
 
     def __post_init__(self) -> None:
         ref = self.reference_px_per_m
         if ref is not None and not (math.isfinite(ref) and ref > 0):
             raise ConfigError(f"fit.reference_px_per_m: expected a number > 0 or null, got {ref!r}")
+        rho = self.pixel_noise_ratio
+        if rho is not None and not (math.isfinite(rho) and rho >= 0):
+            raise ConfigError(f"fit.pixel_noise_ratio: expected a number >= 0 or null, got {rho!r}")
         poses = list(self.poses)
         if not poses or len(set(poses)) != len(poses) or not set(poses) <= set(range(1, 7)):
             raise ConfigError(f"fit.poses: expected distinct postures from 1..6, got {poses}")
@@ -102,9 +113,17 @@ def pixels_per_metre(camera: Camera) -> torch.Tensor:
     return focal / (centre - middle).norm(dim=-1)
 
 
-def image_scale(camera: Camera, reference_px_per_m: float | None) -> torch.Tensor:
-    """(B,) reference pixels per image pixel of each camera: ``reference_px_per_m /``
-    :func:`pixels_per_metre`, or ones where ``reference_px_per_m`` is None (image pixels)."""
+def image_scale(
+    camera: Camera, reference_px_per_m: float | None, pixel_noise_ratio: float | None = None
+) -> torch.Tensor:
+    """(B,) the factor of each camera's image residuals: reference pixels per image pixel,
+    ``reference_px_per_m /`` :func:`pixels_per_metre`, or ones where ``reference_px_per_m``
+    is None (image pixels); with ``pixel_noise_ratio`` ``ρ``, ``sqrt((ρ² + 1) / (ρ² + (p /
+    reference_px_per_m)²))`` (see :class:`FitOptions`)."""
     if reference_px_per_m is None:
         return torch.ones(camera.K.shape[0], dtype=camera.K.dtype, device=camera.K.device)
-    return reference_px_per_m / pixels_per_metre(camera)
+    if pixel_noise_ratio is None:
+        return reference_px_per_m / pixels_per_metre(camera)
+    rho2 = pixel_noise_ratio**2
+    relative = pixels_per_metre(camera) / reference_px_per_m
+    return ((rho2 + 1.0) / (rho2 + relative * relative)).sqrt()

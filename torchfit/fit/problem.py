@@ -90,7 +90,9 @@ class SilhouetteFit:
         #: (B, J) weight of each posture's residuals (e_P and e_M), 1 unless down-weighted.
         self.pose_weights = torch.ones(self.batch, len(self.poses), **kw)
         #: (B,) reference pixels per image pixel (``options.reference_px_per_m``; 1 without)
-        self.image_scale = image_scale(self.camera, options.reference_px_per_m).to(**kw)
+        self.image_scale = image_scale(
+            self.camera, options.reference_px_per_m, options.pixel_noise_ratio
+        ).to(**kw)
         #: (parameters, rows, choice) of the last :meth:`select`
         self._last_choice: tuple | None = None
 
