@@ -1,5 +1,6 @@
 """Calibration on many random cameras: checkerboard images rendered through seeded random
-distorted cameras (as ``tests/test_calibrate.py`` draws them), calibrated with
+distorted cameras (``torchfit.synth.board.random_camera``, as ``tests/test_calibrate.py``
+draws them), calibrated with
 ``torchfit.capture.calibrate``, against issue-level limits (focal length 0.5 %, principal point
 2 px, camera centre 1 cm).
 
@@ -21,11 +22,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from test_calibrate import BOARD, _random_camera, _render  # noqa: E402
+from torchfit.capture.calibrate import Board, calibrate  # noqa: E402
+from torchfit.synth.board import random_camera, write_board_images  # noqa: E402
 
-from torchfit.capture.calibrate import calibrate  # noqa: E402
+#: the tests' board: 9x6 inner corners, 6 cm squares
+BOARD = Board(9, 6, 0.06)
 
 
 def main() -> None:
@@ -40,9 +43,11 @@ def main() -> None:
     print("|--:|--:|--:|--:|--:|--:|--:|")
     for seed in range(*args.seeds):
         rng = np.random.default_rng(seed)
-        truth = _random_camera(rng, size)
+        truth = random_camera(rng, size)
         with tempfile.TemporaryDirectory() as d:
-            folder = _render(truth, Path(d), rng, n=args.images)
+            folder = write_board_images(
+                truth, Path(d), BOARD.cols, BOARD.rows, BOARD.square_m, args.images, rng
+            )
             t = time.perf_counter()
             boards = sorted((folder / "boards").glob("*.png"))
             try:

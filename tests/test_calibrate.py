@@ -11,12 +11,17 @@ import numpy as np
 import pytest
 import torch
 
-from torchfit.camera import Camera, look_at
+from torchfit.camera import Camera
 from torchfit.capture.calibrate import Board, calibrate, find_corners, parse_board
 from torchfit.errors import ConfigError, DataError
 from torchfit.io.camera import load_camera, save_camera
 from torchfit.io.images import read_image, write_image
-from torchfit.synth.board import floor_board_pose, random_board_pose, render_board
+from torchfit.synth.board import (
+    random_board_pose,
+    random_camera,
+    render_board,
+    write_board_images,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = (720, 576)
@@ -25,50 +30,12 @@ BOARD = Board(9, 6, 0.06)
 
 def _random_camera(rng: np.random.Generator, size: tuple[int, int] = SIZE) -> Camera:
     """A camera the test does not choose: focal length, principal point, distortion and
-    position drawn from a seeded generator (the focal length in proportion to the image's
-    height)."""
-    f = rng.uniform(650.0, 1000.0) * size[1] / SIZE[1]
-    K = np.array(
-        [
-            [f, 0.0, size[0] / 2 + rng.uniform(-20, 20)],
-            [0.0, f * rng.uniform(0.995, 1.005), size[1] / 2 + rng.uniform(-20, 20)],
-            [0.0, 0.0, 1.0],
-        ]
-    )
-    dist = np.array(
-        [rng.uniform(-0.25, 0.05), rng.uniform(-0.05, 0.15), *rng.uniform(-1e-3, 1e-3, 2), 0.0]
-    )
-    azimuth = rng.uniform(-np.pi, np.pi)
-    distance, height = rng.uniform(1.8, 2.6), rng.uniform(1.6, 2.3)
-    centre = torch.tensor([[distance * np.cos(azimuth), distance * np.sin(azimuth), height]])
-    R, t = look_at(centre, torch.tensor([[0.0, 0.0, 0.5]]))
-    return Camera(
-        K=torch.from_numpy(K),
-        dist=torch.from_numpy(dist),
-        R=R[0].double(),
-        t=t[0].double(),
-        image_size=size,
-    )
+    position drawn from a seeded generator (:func:`torchfit.synth.board.random_camera`)."""
+    return random_camera(rng, size)
 
 
 def _render(camera: Camera, folder: Path, rng: np.random.Generator, n: int = 14) -> Path:
-    K, dist = camera.K[0].numpy(), camera.dist[0].numpy()
-    size = camera.image_size
-    # the board (with its margin) across 40 to 65 % of the image's width
-    width_m = (BOARD.cols + 2.6) * BOARD.square_m
-    near, far = (K[0, 0] * width_m / (size[0] * share) for share in (0.65, 0.4))
-    for k in range(n):
-        rvec, tvec = random_board_pose(
-            rng, K, size, BOARD.cols, BOARD.rows, BOARD.square_m, distance=(near, far)
-        )
-        image = render_board(K, dist, rvec, tvec, BOARD.cols, BOARD.rows, BOARD.square_m, size, rng)
-        write_image(folder / "boards" / f"board{k:02d}.png", image)
-    rvec, tvec = floor_board_pose(
-        camera.R[0].numpy(), camera.t[0].numpy(), BOARD.cols, BOARD.rows, BOARD.square_m
-    )
-    image = render_board(K, dist, rvec, tvec, BOARD.cols, BOARD.rows, BOARD.square_m, size, rng)
-    write_image(folder / "floor.png", image)
-    return folder
+    return write_board_images(camera, folder, BOARD.cols, BOARD.rows, BOARD.square_m, n, rng)
 
 
 @pytest.mark.parametrize("seed,size", [(101, SIZE), (202, SIZE), (303, SIZE), (404, (1920, 1080))])

@@ -13,10 +13,22 @@ of :mod:`torchfit.capture.calibrate`).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
+import torch
 
-__all__ = ["render_board", "random_board_pose", "floor_board_pose", "board_images"]
+from torchfit.camera import Camera, look_at
+
+__all__ = [
+    "render_board",
+    "random_board_pose",
+    "floor_board_pose",
+    "board_images",
+    "random_camera",
+    "write_board_images",
+]
 
 
 def _edge(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
@@ -157,3 +169,65 @@ def board_images(
         held.append(render_board(K, dist, rvec, tvec, cols, rows, square_m, size, rng))
     rvec, tvec = floor_board_pose(R_world, t_world, cols, rows, square_m)
     return held, render_board(K, dist, rvec, tvec, cols, rows, square_m, size, rng)
+
+
+def random_camera(rng: np.random.Generator, size: tuple[int, int] = (720, 576)) -> Camera:
+    """A camera drawn from ``rng`` (B = 1, float64): focal length 650-1000 px at 576 rows, in
+    proportion to the image's height, the principal point within 20 px of the centre, lens
+    distortion (``k1`` -0.25..0.05, ``k2`` -0.05..0.15, small tangential terms), the camera
+    1.8-2.6 m from the floor mark at any azimuth and 1.6-2.3 m high, looking at the point
+    0.5 m above the mark."""
+    f = rng.uniform(650.0, 1000.0) * size[1] / 576
+    K = np.array(
+        [
+            [f, 0.0, size[0] / 2 + rng.uniform(-20, 20)],
+            [0.0, f * rng.uniform(0.995, 1.005), size[1] / 2 + rng.uniform(-20, 20)],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    dist = np.array(
+        [rng.uniform(-0.25, 0.05), rng.uniform(-0.05, 0.15), *rng.uniform(-1e-3, 1e-3, 2), 0.0]
+    )
+    azimuth = rng.uniform(-np.pi, np.pi)
+    distance, height = rng.uniform(1.8, 2.6), rng.uniform(1.6, 2.3)
+    centre = torch.tensor([[distance * np.cos(azimuth), distance * np.sin(azimuth), height]])
+    R, t = look_at(centre, torch.tensor([[0.0, 0.0, 0.5]]))
+    return Camera(
+        K=torch.from_numpy(K),
+        dist=torch.from_numpy(dist),
+        R=R[0].double(),
+        t=t[0].double(),
+        image_size=size,
+    )
+
+
+def write_board_images(
+    camera: Camera,
+    folder: Path,
+    cols: int,
+    rows: int,
+    square_m: float,
+    n: int,
+    rng: np.random.Generator,
+) -> Path:
+    """:func:`board_images` of ``camera`` (B = 1) written as ``folder/boards/boardNN.png`` and
+    ``folder/floor.png`` (the layout ``tools/calibrate.py --images --floor`` reads); returns
+    ``folder``."""
+    from torchfit.io.images import write_image
+
+    held, floor = board_images(
+        camera.K[0].numpy(),
+        camera.dist[0].numpy(),
+        camera.R[0].numpy(),
+        camera.t[0].numpy(),
+        camera.image_size,
+        cols,
+        rows,
+        square_m,
+        n,
+        rng,
+    )
+    for k, image in enumerate(held):
+        write_image(folder / "boards" / f"board{k:02d}.png", image)
+    write_image(folder / "floor.png", floor)
+    return folder
