@@ -41,8 +41,7 @@ from tqdm import tqdm  # noqa: E402
 from torchfit.capture.calibrate import parse_board  # noqa: E402
 from torchfit.errors import TorchfitError  # noqa: E402
 from torchfit.io.camera import load_camera  # noqa: E402
-from torchfit.io.images import write_image  # noqa: E402
-from torchfit.synth.board import board_images  # noqa: E402
+from torchfit.synth.board import write_board_images  # noqa: E402
 from torchfit.synth.options import SynthConfig  # noqa: E402
 from torchfit.synth.video import make_video  # noqa: E402
 
@@ -88,21 +87,10 @@ def main(argv: list[str] | None = None) -> int:
             make_video(args.out / "video", args.seed, cfg)
             bar.update(1)
             camera = load_camera(args.out / "video" / "camera.yaml")
-            held, floor = board_images(
-                camera.K[0].numpy(),
-                camera.dist[0].numpy(),
-                camera.R[0].numpy(),
-                camera.t[0].numpy(),
-                camera.image_size,
-                board.cols,
-                board.rows,
-                board.square_m,
-                args.boards,
-                np.random.default_rng([args.seed, 1]),
+            rng = np.random.default_rng([args.seed, 1])
+            write_board_images(
+                camera, args.out, board.cols, board.rows, board.square_m, args.boards, rng, first=1
             )
-            for k, image in enumerate(held, start=1):
-                write_image(args.out / "boards" / f"board{k:02d}.png", image)
-            write_image(args.out / "floor.png", floor)
             shutil.copy(args.out / "video" / "camera.yaml", args.out / "true_camera.yaml")
             bar.update(1)
     except OSError as exc:

@@ -209,10 +209,11 @@ def write_board_images(
     square_m: float,
     n: int,
     rng: np.random.Generator,
+    first: int = 0,
 ) -> Path:
-    """:func:`board_images` of ``camera`` (B = 1) written as ``folder/boards/boardNN.png`` and
-    ``folder/floor.png`` (the layout ``tools/calibrate.py --images --floor`` reads); returns
-    ``folder``."""
+    """:func:`board_images` of ``camera`` (B = 1) written as ``folder/boards/boardNN.png`` (NN
+    from ``first``) and ``folder/floor.png`` (the layout ``tools/calibrate.py --images
+    --floor`` reads); returns ``folder``."""
     from torchfit.io.images import write_image
 
     held, floor = board_images(
@@ -227,7 +228,7 @@ def write_board_images(
         n,
         rng,
     )
-    for k, image in enumerate(held):
+    for k, image in enumerate(held, start=first):
         write_image(folder / "boards" / f"board{k:02d}.png", image)
     write_image(folder / "floor.png", floor)
     return folder
