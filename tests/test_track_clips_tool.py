@@ -1,0 +1,41 @@
+"""benchmarks/track_clips.py: the clips it makes and the table it writes (no tracking here)."""
+
+import pytest
+from scripts import load_script
+
+
+@pytest.fixture(scope="module")
+def tool():
+    return load_script("benchmarks/track_clips.py")
+
+
+def test_the_clips_are_the_documented_ones(tool):
+    dev, test = tool.CLIPS["dev"], tool.CLIPS["test"]
+    assert len(dev) == 10 and len({c.name for c in dev}) == 10
+    assert {c.motion for c in dev} == {"01_01.bvh"} and [c.motion for c in test] == ["11_01.amc"]
+    assert (dev[0].start, dev[0].seed, dev[0].frames, dev[0].step) == (300, 11, 40, 4)
+    assert (test[0].start, test[0].seed, test[0].frames) == (200, 19, 60)
+
+
+def _eval(err: float, ok: int, uncertain: int) -> dict:
+    return {
+        "mean_joint_error_mm": err,
+        "along_ray_mm": err * 0.8,
+        "across_ray_mm": err * 0.4,
+        "ms_per_frame": 100.0,
+        "status": {"ok": ok, "uncertain": uncertain},
+    }
+
+
+def test_the_table_has_each_clip_then_the_mean_and_median(tool):
+    text, rows = tool.summarise(
+        {"a": _eval(60.0, 38, 2), "b": _eval(90.0, 30, 10), "c": _eval(150.0, 40, 0)}
+    )
+    assert rows[0][:2] == ["clip", "joint error mm"]
+    assert rows[1] == ["a", "60.0", "48.0", "24.0", "100.0", "38", "0", "2"]
+    assert rows[4] == ["mean", "100.0", "80.0", "40.0", "100.0", "108", "0", "12"]
+    assert rows[5][:2] == ["median", "90.0"] and rows[5][5:] == ["", "", ""]
+    assert text.splitlines()[2].startswith("| a | 60.0 |") and len(text.splitlines()) == 7
+    # one clip: no summary rows
+    _, alone = tool.summarise({"a": _eval(60.0, 38, 2)})
+    assert len(alone) == 2
