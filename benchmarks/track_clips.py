@@ -1,13 +1,16 @@
 """Tracking accuracy on the CMU clips of benchmarks/RESULTS.md, in one command: each clip made,
 its body fitted from its six postures, then tracked; one table.
 
-    python benchmarks/track_clips.py --out DIR [--clips dev|test] [--tag NAME]
+    python benchmarks/track_clips.py --out DIR [--clips dev|wide|test] [--tag NAME]
         [--set KEY=VALUE ...] [--threads 1] [--mocap ../shared/data/cmu-mocap-sample]
 
 The clips (`tools/make_sequence.py`, from the CMU motion capture in `--mocap`):
 
 - `dev`: the ten development clips of "Test sequences that stand on the floor" (`01_01.bvh`,
   40 frames, every 4th, from each clip's start with its seed); tune on these;
+- `wide`: those ten and twenty more from `01_01.bvh` (ten other stretches, and the ten
+  stretches again on other bodies and rooms), for settings whose effect the ten clips' spread
+  hides; tune on these too;
 - `test`: the held-out clip (`11_01.amc`, 60 frames from 200, every 4th, seed 19); report it,
   never tune on it (a run of its own: the two sets are never averaged together).
 
@@ -61,6 +64,18 @@ CLIPS = {
     ],
     "test": [Clip("test11", "11_01.amc", 200, 19, frames=60)],
 }
+#: ``wide``: the ten development clips and twenty more from the same motion (other stretches,
+#: and the same stretches on other bodies and rooms), for settings whose effect the ten clips'
+#: spread hides.
+CLIPS["wide"] = CLIPS["dev"] + [
+    Clip(f"wide_s{start}", "01_01.bvh", start, seed)
+    for start, seed in [
+        (100, 101), (450, 103), (800, 107), (1100, 109), (1300, 113),
+        (1600, 127), (1900, 131), (2150, 137), (2400, 139), (2590, 149),
+        (0, 151), (300, 157), (600, 163), (1000, 167), (1200, 173),
+        (1400, 179), (1800, 181), (2000, 191), (2300, 193), (2500, 197),
+    ]
+]  # fmt: skip
 
 #: The table's columns (eval.json keys of ``tools/track.py``).
 COLUMNS = ("mean_joint_error_mm", "along_ray_mm", "across_ray_mm", "ms_per_frame")

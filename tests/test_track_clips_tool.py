@@ -15,6 +15,10 @@ def test_the_clips_are_the_documented_ones(tool):
     assert {c.motion for c in dev} == {"01_01.bvh"} and [c.motion for c in test] == ["11_01.amc"]
     assert (dev[0].start, dev[0].seed, dev[0].frames, dev[0].step) == (300, 11, 40, 4)
     assert (test[0].start, test[0].seed, test[0].frames) == (200, 19, 60)
+    wide = tool.CLIPS["wide"]
+    assert wide[:10] == dev and len({c.name for c in wide}) == 30
+    # every clip's frames lie within the motion (01_01.bvh has 2,752 frames)
+    assert max(c.start + (c.frames - 1) * c.step for c in wide) < 2752
 
 
 def _eval(err: float, ok: int, uncertain: int) -> dict:
