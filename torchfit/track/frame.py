@@ -38,22 +38,22 @@ class FrameResult:
     Attributes:
         x: (B, P) fitted pose rows.
         cost: (B,) final cost ``0.5 |r|²``.
-        contour_rms: (B,) RMS of e_P in the image's pixels: how far the person contour lies
-            from the model's.
+        reference_rms: (B,) RMS of e_P in reference pixels (``reference_px_per_m``): how far
+            the person contour lies from the model's, as the tracker's limits read it.
         iterations: (B,) LM iterations over all rounds.
-        image_scale: (B,) reference pixels per image pixel (``reference_px_per_m``).
+        image_scale: (B,) reference pixels per image pixel.
     """
 
     x: torch.Tensor
     cost: torch.Tensor
-    contour_rms: torch.Tensor
+    reference_rms: torch.Tensor
     iterations: torch.Tensor
     image_scale: torch.Tensor
 
     @property
-    def reference_rms(self) -> torch.Tensor:
-        """(B,) :attr:`contour_rms` in reference pixels (what the tracker's limits read)."""
-        return self.contour_rms * self.image_scale
+    def contour_rms(self) -> torch.Tensor:
+        """(B,) :attr:`reference_rms` in the image's pixels (what the records report)."""
+        return self.reference_rms / self.image_scale
 
 
 def solve_frame(
@@ -119,5 +119,5 @@ def solve_frame(
     # the solver's last residual is the one at x: e_P leads it, already over sqrt(|C_P|), in
     # reference pixels
     e_p = residual[:, : person.contours[0].shape[1]]
-    rms = (e_p * e_p).sum(1).sqrt() / scale
-    return FrameResult(x=x, cost=cost, contour_rms=rms, iterations=iterations, image_scale=scale)
+    rms = (e_p * e_p).sum(1).sqrt()
+    return FrameResult(x=x, cost=cost, reference_rms=rms, iterations=iterations, image_scale=scale)

@@ -170,10 +170,8 @@ def track(
                 sampler,
             )
             for k, i in enumerate(bad):
-                better = float(again.reference_rms[k]) < float(ref[i])
-                if better:
+                if float(again.reference_rms[k]) < float(ref[i]):
                     res.x[i] = again.x[k]
-                    res.contour_rms[i] = again.contour_rms[k]
                     ref[i] = again.reference_rms[k]
                     res.cost[i] = again.cost[k]
                 res.iterations[i] += again.iterations[k]
@@ -191,7 +189,7 @@ def track(
                     cost=float(res.cost[i]),
                     iterations=int(res.iterations[i]),
                     ms=ms,
-                    contour_rms=float(res.contour_rms[i]),
+                    contour_rms=float(res.contour_rms[i]),  # the image's pixels
                     confidence=1.0 / (1.0 + (rms / options.confidence_px) ** 2),
                     x=res.x[i].detach().clone(),
                 )
