@@ -87,6 +87,7 @@ def solve_frame(
         max_iter=options.iterations,
         fold_batch=False,
         min_diag=options.min_diag,
+        initial_damping=options.initial_damping,
         ftol=options.ftol,
         xtol=options.xtol,
     )

@@ -31,12 +31,14 @@ class TrackOptions:
     """Options of the tracker.
 
     Attributes:
-        iterations: LM iterations per contour choice.
-        rounds: contour choices (each followed by an LM solve) per frame. Three choices of
-            three iterations each track the thirty development clips of
-            ``benchmarks/track_clips.py --clips wide`` as well as or better than two of eight
-            (137.6 against 145.9 mm on average, 19 clips of 30 better), in 0.6-0.9 of the
-            time over a whole clip (a recovery's solve takes twice the iterations).
+        iterations: LM iterations per contour choice (a recovery's solve takes twice as
+            many).
+        rounds: contour choices (each followed by an LM solve) per frame. Three choices of one
+            iteration each, started with ``initial_damping`` 0.1, track the thirty development
+            clips of ``benchmarks/track_clips.py --clips wide`` as well as three of three
+            started at the solver's 1e-3 (135.8 against 137.6 mm on average) in about 0.6 of
+            the time: a frame's solves are near their minimum, and with little damping two in
+            three of their first trial steps were rejected.
         temporal_translation: temporal weight of the root translation, pixels per metre. The
             contour is weighed as its RMS, and a silhouette tells the body's distance only
             through its size, which a lean in depth fakes: 1 m of depth moves the RMS by a few
@@ -87,6 +89,9 @@ class TrackOptions:
             a row stops before ``iterations`` once its relative cost reduction or its
             relative step falls below them.
         min_diag: floor of the solver's scaling (:attr:`torchfit.solver.LMOptions.min_diag`).
+        initial_damping: the solver's damping at the start of each solve
+            (:attr:`torchfit.solver.LMOptions.initial_damping`, relative to the scaling;
+            the solver's own default, 1e-3, overshoots from a frame's warm start).
         jacobian: ``analytic`` (the pose derivatives in closed form, one model call per
             Jacobian: the fastest), ``batched`` (forward differences, all the perturbed rows in
             one model call) or a solver Jacobian (``forward``, ``numeric``).
@@ -99,7 +104,7 @@ class TrackOptions:
             ``distance_margin_px`` is the image's. ``None``: everything in the image's pixels.
     """
 
-    iterations: int = 3
+    iterations: int = 1
     rounds: int = 3
     temporal_translation: float = 20.0
     start_translation: float = 100.0
@@ -111,6 +116,7 @@ class TrackOptions:
     confidence_px: float = 6.0
     floor_weight: float = 30.0
     min_diag: float = 1e-6
+    initial_damping: float = 0.1
     contour_stride: int = 3
     distance_margin_px: int | None = 48
     jacobian: str = "analytic"
