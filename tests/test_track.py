@@ -365,6 +365,45 @@ def test_analytic_frame_jacobian_matches_central_differences(model, camera, dept
     assert err.max() < 1e-4 * (1 + jac[keep].abs().max()), err.max()
 
 
+def test_a_handed_over_pass_gives_the_residual_and_jacobian_of_a_fresh_one(model, camera):
+    """The contour choice's kinematics pass of every vertex, handed to the solve's residual
+    (:meth:`_FrameResidual.start_from`), gives bit for bit the residual and the Jacobian that
+    posing the residual's own vertices gives; at any other pose the residual poses anew."""
+    from torchfit.fit.model_contour import EdgeSampler, select_contour
+    from torchfit.track.residual import _FrameResidual
+
+    opts = TrackOptions()
+    layout = PoseLayout(model, opts)
+    truth = _pose(model, layout, camera, {"l_shoulder_abduct": 0.8, "r_knee_flexion": 0.5})[None]
+    person = person_data_from_masks(_masks(model, camera, truth)[:, None], camera, stride=3)
+    g = torch.Generator().manual_seed(5)
+    x = layout.clip(truth + 0.03 * torch.randn(truth.shape, generator=g, dtype=torch.float64))
+    scales = 1 + 0.1 * torch.rand(1, model.num_segments, 3, generator=g, dtype=torch.float64)
+    sampler = EdgeSampler(model.faces, opts.samples_per_edge)
+    t, r, q = PoseLayout.split(x)
+    every = torch.arange(model.template.vertices.shape[0])
+    whole = model.pose_pass(scales, q, t, r, every)
+    pix = project_points(whole[2].vertices, camera)
+    sel = select_contour(sampler, pix, person.contours[0], person.valid[0], SIZE, 1.0)
+    rows = torch.arange(1)
+
+    def problem():
+        return _FrameResidual(model, scales, person, layout, truth, sampler, sel)
+
+    fresh, handed = problem(), problem()
+    handed.start_from(x, rows, whole)
+    assert torch.equal(handed(x, rows)[0], fresh(x, rows)[0])
+    jac_h, r_h = handed.analytic_jacobian(x, rows)
+    jac_f, r_f = fresh.analytic_jacobian(x, rows)
+    assert torch.equal(jac_h, jac_f) and torch.equal(r_h, r_f)
+    # elsewhere the hand-over is not used
+    y = layout.clip(x + 0.05)
+    again = problem()
+    again.start_from(x, rows, whole)
+    assert torch.equal(again(y, rows)[0], fresh(y, rows)[0])
+    assert not torch.equal(fresh(y, rows)[0], fresh(x, rows)[0])
+
+
 def _one_frame(model, camera, opts, offset):
     """One frame of the left arm raised: the layout, the true pose row, the person data, a
     start ``truth + offset(truth)`` within the limits, unit scales, the edge sampler and the

@@ -20,13 +20,13 @@ from dataclasses import dataclass
 import torch
 
 from torchfit.body.model import BodyModel
-from torchfit.camera import Camera
+from torchfit.camera import Camera, project_points
 from torchfit.fit.model_contour import EdgeSampler, select_contour
 from torchfit.fit.options import image_scale
 from torchfit.fit.person import PersonData
 from torchfit.solver import LMOptions, levenberg_marquardt
 from torchfit.track.options import PoseLayout, TrackOptions
-from torchfit.track.residual import _JACOBIANS, _depth_target, _FrameResidual, _pixels
+from torchfit.track.residual import _JACOBIANS, _depth_target, _FrameResidual
 
 __all__ = ["TrackOptions", "FrameResult", "PoseLayout", "solve_frame"]
 
@@ -95,15 +95,21 @@ def solve_frame(
     target = _depth_target(model, scales, camera, prediction, layout)
     scale = image_scale(camera, options.reference_px_per_m).to(x)
     residual = None
+    every = torch.arange(model.template.vertices.shape[0], device=x.device)
+    rows = torch.arange(x.shape[0], device=x.device)
     for _ in range(options.rounds):
+        # one kinematics pass of every vertex serves the contour choice and the solve's start
         with torch.no_grad():
-            pix = _pixels(model, scales, camera, x, None)
+            t, r, q = PoseLayout.split(x)
+            whole = model.pose_pass(scales, q, t, r, every)
+            pix = project_points(whole[2].vertices, camera)
         sel = select_contour(
             sampler, pix, person.contours[0], person.valid[0], camera.image_size, 1.0
         )
         problem = _FrameResidual(
             model, scales, person, layout, prediction, sampler, sel, target, scale
         )
+        problem.start_from(x, rows, whole)
         res = levenberg_marquardt(
             problem,
             x,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 
+from torchfit.body.model import BodyOutput
 from torchfit.camera import camera_centre, project_points, project_with_jacobian
 from torchfit.fit.model_contour import contour_endpoints, point_to_edge_distance
 from torchfit.image.distance import sample_distance_map
@@ -152,10 +153,25 @@ class _FrameResidual:
         e_f = self.floor_weight * lowest.values
         return [e_t, e_f, *self._neutral(xr), *limbs], self.soles[lowest.indices[:, 0]]
 
-    def __call__(self, xr: torch.Tensor, index: torch.Tensor):
+    def start_from(self, xr: torch.Tensor, index: torch.Tensor, whole: tuple) -> None:
+        """Hand over the kinematics pass ``whole`` of every template vertex at the rows
+        ``xr`` (problems ``index``), made for the contour choice: the first residual there and
+        the Jacobian take their vertices from it instead of posing the body again."""
+        rot_root, frames, out, seg = whole
+        sub = BodyOutput(out.vertices[:, self.verts], out.origins, out.rotations)
+        self._last = (xr.clone(), index.clone(), (rot_root, frames, sub, seg[self.verts]))
+
+    def _pass(self, xr: torch.Tensor, index: torch.Tensor, rows: dict) -> tuple:
+        """The kinematics pass at ``xr``: the one handed over or last made there, else new."""
+        last = self._last
+        if last is not None and torch.equal(last[1], index) and torch.equal(last[0], xr):
+            return last[2]
         t, r, q = PoseLayout.split(xr)
+        return self.model.pose_pass(rows["scales"], q, t, r, self.verts)
+
+    def __call__(self, xr: torch.Tensor, index: torch.Tensor):
         rows = self._at(index)
-        passed = self.model.pose_pass(rows["scales"], q, t, r, self.verts)
+        passed = self._pass(xr, index, rows)
         # the solver asks for the Jacobian where it accepts a step: the pass is kept for it
         self._last = (xr.clone(), index.clone(), passed)
         world = passed[2].vertices
