@@ -186,10 +186,8 @@ class _FrameResidual:
         each residual entry's derivative w.r.t. its own endpoint pixels (reverse mode)."""
         n, p_count = xr.shape
         t, r, q = PoseLayout.split(xr)
-        last, passed = self._last, None
-        if last is not None and torch.equal(last[1], index) and torch.equal(last[0], xr):
-            passed = last[2]  # the residual was evaluated here: its kinematics pass serves
         rows = self._at(index)
+        passed = self._pass(xr, index, rows)  # the residual's, where it was evaluated here
         world, d_world = self.model.pose_jacobian(rows["scales"], q, t, r, self.verts, passed)
         pix, d_pix = project_with_jacobian(world, d_world, rows["camera"])
         ends = {k: v.detach().requires_grad_(True) for k, v in self._endpoints(pix, rows).items()}
