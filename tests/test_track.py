@@ -609,3 +609,25 @@ def test_the_contour_terms_are_in_reference_pixels_and_the_rest_is_not(model, ca
     torch.testing.assert_close(res.reference_rms, 0.5 * res.contour_rms)
     with pytest.raises(ConfigError, match="track.reference_px_per_m"):
         TrackOptions(reference_px_per_m=0.0)
+
+
+@pytest.mark.parametrize(
+    "change, key",
+    [
+        ({"rounds": 0}, "track.rounds"),
+        ({"iterations": 1.5}, "track.iterations"),
+        ({"contour_stride": 0}, "track.contour_stride"),
+        ({"initial_damping": 0.0}, "track.initial_damping"),
+        ({"min_diag": float("nan")}, "track.min_diag"),
+        ({"floor_weight": -1.0}, "track.floor_weight"),
+        ({"confidence_px": 0.0}, "track.confidence_px"),
+        ({"turn_smoothing": 1.5}, "track.turn_smoothing"),
+        ({"distance_margin_px": -1}, "track.distance_margin_px"),
+        ({"jacobian": "bogus"}, "track.jacobian"),
+    ],
+)
+def test_bad_tracker_options_are_config_errors_naming_the_key(change, key):
+    """A tracker option out of its range fails when the options are made (the config's load,
+    exit code 2), naming the key; a zero of a count used to crash mid-track."""
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        TrackOptions(**change)

@@ -26,6 +26,31 @@ _DEPTH_JOINTS = {
 }
 
 
+#: the tracker's Jacobians (:mod:`torchfit.track.residual`) and the solver's own
+_JACOBIAN_NAMES = ("analytic", "batched", "forward", "reverse", "autograd", "numeric")
+#: options that count something (each at least 1)
+_COUNTS = ("iterations", "rounds", "samples_per_edge", "contour_stride")
+#: numeric options -> whether they must be > 0 (else >= 0)
+_NUMBERS = {
+    "initial_damping": True,
+    "min_diag": True,
+    "ftol": False,
+    "xtol": False,
+    "temporal_translation": False,
+    "start_translation": False,
+    "temporal_rotation": False,
+    "temporal_joints": False,
+    "floor_weight": False,
+    "twist_weight": False,
+    "temporal_depth": False,
+    "recover_factor": True,
+    "recover_min_px": False,
+    "confidence_px": True,
+    "turn_velocity": False,
+    "turn_dead_deg": False,
+}
+
+
 @dataclass(frozen=True)
 class TrackOptions:
     """Options of the tracker.
@@ -135,6 +160,32 @@ class TrackOptions:
         if ref is not None and not (math.isfinite(ref) and ref > 0):
             raise ConfigError(
                 f"track.reference_px_per_m: expected a number > 0 or null, got {ref!r}"
+            )
+        for name in _COUNTS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"track.{name}: expected an integer >= 1, got {value!r}")
+        for name, positive in _NUMBERS.items():
+            value = getattr(self, name)
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            ok = ok and math.isfinite(value) and (value > 0 if positive else value >= 0)
+            if not ok:
+                bound = "> 0" if positive else ">= 0"
+                raise ConfigError(f"track.{name}: expected a number {bound}, got {value!r}")
+        a = self.turn_smoothing
+        if isinstance(a, bool) or not isinstance(a, (int, float)) or not 0 <= a <= 1:
+            raise ConfigError(f"track.turn_smoothing: expected a number in [0, 1], got {a!r}")
+        margin = self.distance_margin_px
+        if margin is not None and (
+            isinstance(margin, bool) or not isinstance(margin, int) or margin < 0
+        ):
+            raise ConfigError(
+                f"track.distance_margin_px: expected an integer >= 0 or null, got {margin!r}"
+            )
+        if self.jacobian not in _JACOBIAN_NAMES:
+            raise ConfigError(
+                f"track.jacobian: expected one of {', '.join(_JACOBIAN_NAMES)},"
+                f" got {self.jacobian!r}"
             )
 
 
