@@ -57,7 +57,7 @@ class TrackOptions:
 
     Attributes:
         iterations: LM iterations per contour choice (a recovery's solve takes twice as
-            many).
+            many, the first frame's, from the neutral pose, three times as many).
         rounds: contour choices (each followed by an LM solve) per frame. Three choices of one
             iteration each, started with ``initial_damping`` 0.1, track the thirty development
             clips of ``benchmarks/track_clips.py --clips wide`` as well as three of three
