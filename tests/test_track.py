@@ -326,10 +326,16 @@ def test_a_known_start_is_tracked_from_instead_of_the_first_frame_s_own(
         )
 
 
+def _pixels(model, scales, camera, x, vertex_index):
+    """(B, K, 2) pixels of the posed vertices ``vertex_index`` (None: all) of pose rows ``x``."""
+    t, r, q = PoseLayout.split(x)
+    return project_points(model(scales, q, t, r, vertex_index=vertex_index).vertices, camera)
+
+
 @pytest.mark.parametrize("depth", [0.0, 50.0])
 def test_analytic_frame_jacobian_matches_central_differences(model, camera, depth):
     from torchfit.fit.model_contour import EdgeSampler, select_contour
-    from torchfit.track.residual import _FrameResidual, _pixels
+    from torchfit.track.residual import _FrameResidual
 
     opts = TrackOptions(temporal_depth=depth)  # with and without the limbs' depth pull
     layout = PoseLayout(model, opts)
@@ -409,7 +415,6 @@ def _one_frame(model, camera, opts, offset):
     start ``truth + offset(truth)`` within the limits, unit scales, the edge sampler and the
     model-contour choice at the start."""
     from torchfit.fit.model_contour import EdgeSampler, select_contour
-    from torchfit.track.residual import _pixels
 
     layout = PoseLayout(model, opts)
     truth = _pose(model, layout, camera, {"l_shoulder_abduct": 0.8})[None]
@@ -558,7 +563,7 @@ def test_the_contour_terms_are_in_reference_pixels_and_the_rest_is_not(model, ca
     reference pixels (``FrameResult.reference_rms``)."""
     from torchfit.fit.model_contour import select_contour
     from torchfit.fit.options import pixels_per_metre
-    from torchfit.track.residual import _FrameResidual, _pixels
+    from torchfit.track.residual import _FrameResidual
 
     opts = TrackOptions()
     layout, truth, person, x, scales, sampler, sel = _one_frame(

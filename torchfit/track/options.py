@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import torch
 
@@ -27,7 +28,8 @@ _DEPTH_JOINTS = {
 
 
 #: the tracker's Jacobians (:mod:`torchfit.track.residual`) and the solver's own
-_JACOBIAN_NAMES = ("analytic", "batched", "forward", "reverse", "autograd", "numeric")
+Jacobian = Literal["analytic", "batched", "forward", "reverse", "autograd", "numeric"]
+_JACOBIAN_NAMES = get_args(Jacobian)
 #: options that count something (each at least 1)
 _COUNTS = ("iterations", "rounds", "samples_per_edge", "contour_stride")
 #: numeric options -> whether they must be > 0 (else >= 0)
@@ -144,7 +146,7 @@ class TrackOptions:
     initial_damping: float = 0.1
     contour_stride: int = 3
     distance_margin_px: int | None = 48
-    jacobian: str = "analytic"
+    jacobian: Jacobian = "analytic"
     ftol: float = 1e-3
     xtol: float = 1e-3
     velocity_damping: float = 0.0

@@ -14,12 +14,6 @@ from torchfit.track.options import PoseLayout
 _STEP = 1e-6
 
 
-def _pixels(model, scales, camera, x, vertex_index):
-    """(B, K, 2) pixels of the posed vertices ``vertex_index`` (None: all) of pose rows ``x``."""
-    t, r, q = PoseLayout.split(x)
-    return project_points(model(scales, q, t, r, vertex_index=vertex_index).vertices, camera)
-
-
 def _limbs(layout: PoseLayout) -> torch.Tensor:
     """(2, K) the limb joints' vertices and those of the joints they hang from (K = 0 when
     the depth pull is off)."""
