@@ -253,9 +253,11 @@ def test_frames_read_ahead_in_a_thread_or_a_process_track_alike(model, camera, t
         track_sequences(model, scales, [load_sequence(folder)], [tmp_path / "x"], cfg, ahead="gpu")
 
 
-def test_overlays_are_frames_and_a_video_that_reads_back(model, camera, tmp_path):
+def test_overlays_are_frames_and_a_video_that_reads_back(model, camera, tmp_path, monkeypatch):
     """``overlays=True`` writes one PNG a frame and ``overlay.avi`` with the same frames
-    (Motion JPEG: the same images up to the codec's loss), and no partial file is left."""
+    (Motion JPEG: the same images up to the codec's loss), and no partial file is left. The
+    silhouettes they draw are those the frames were tracked to, handed over by the reader: the
+    same PNGs whether it ran in line or in a second process."""
     from torchfit.io.images import load_frames
     from torchfit.io.video import read_video, video_frame_count
     from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences
@@ -271,6 +273,26 @@ def test_overlays_are_frames_and_a_video_that_reads_back(model, camera, tmp_path
     png = load_frames(pngs, SIZE)[0]
     video = torch.cat(list(read_video(out / "overlay.avi", SIZE)))
     assert (video - png).abs().mean() < 0.02  # JPEG's loss, in [0, 1]
+    other = tmp_path / "process"
+    track_sequences(
+        model, scales, [load_sequence(folder)], [other], cfg, ahead="process", overlays=True
+    )
+    assert [p.read_bytes() for p in pngs] == [
+        p.read_bytes() for p in sorted((other / "overlay").glob("*.png"))
+    ]
+    # each frame's person is its segmentation
+    import torchfit.viz.overlay as overlay
+    from torchfit.image import fit_background, segment
+
+    drawn = []
+    draw = overlay.fit_overlay
+    monkeypatch.setattr(overlay, "fit_overlay", lambda *a: drawn.append(a[1]) or draw(*a))
+    track_sequences(model, scales, [load_sequence(folder)], [tmp_path / "spy"], cfg, overlays=True)
+    seq = load_sequence(folder)
+    background = fit_background(load_frames(seq.background, SIZE)[0], cfg.segmentation)
+    people = [segment(i, background, cfg.segmentation).masks[0, 0] for i in seq.images()]
+    assert len(drawn) == 3 and all(d.any() for d in drawn)
+    assert all(np.array_equal(d, p.numpy()) for d, p in zip(drawn, people, strict=True))
 
 
 def test_a_video_writer_refuses_a_frame_of_another_size_and_leaves_no_file(tmp_path):

@@ -165,11 +165,19 @@ def _masks(seqs: list[Sequence], backgrounds, options: SegmentationOptions):
         yield torch.stack(last)
 
 
-def _frames(seqs, backgrounds, cameras, config: TrackConfig, dtype):
-    """Per frame, the tracker's person data, with the silhouettes (B, H, W) they were made from
-    for the first frame only (its start needs them; later ones would be sent for nothing)."""
+def _frames(seqs, backgrounds, cameras, config: TrackConfig, dtype, keep: bool = False):
+    """Per frame, the tracker's person data, with the silhouettes (B, H, W) they were made from:
+    the first frame's as they are (its start needs them); the others' packed eight pixels to a
+    byte (:func:`_pack`) where ``keep`` (the overlays draw them), else None (they would be sent
+    for nothing)."""
     for f, masks in enumerate(_masks(seqs, backgrounds, config.segmentation)):
-        yield masks if f == 0 else None, frame_data(masks, cameras, config.track, dtype)
+        kept = masks if f == 0 else (_pack(masks) if keep else None)
+        yield kept, frame_data(masks, cameras, config.track, dtype)
+
+
+def _pack(masks: torch.Tensor) -> np.ndarray:
+    """(B, H, W) bool silhouettes -> (B, H, ceil(W / 8)) uint8, eight pixels to a byte."""
+    return np.packbits(masks.numpy(), axis=-1)
 
 
 def _joints(model: BodyModel, scales: torch.Tensor, x: torch.Tensor) -> dict[str, np.ndarray]:
@@ -231,7 +239,7 @@ def track_sequences(
         )
     # the next frames are read, segmented and turned into contours and distance maps while
     # this one is tracked
-    args = (sequences, backgrounds, cameras, config, model.dtype)
+    args = (sequences, backgrounds, cameras, config, model.dtype, overlays)
     if ahead == "process":
         ahead = prefetch_process(_frames, *args)
     elif ahead in ("thread", "none"):
@@ -243,9 +251,14 @@ def track_sequences(
         start = start_poses(model, scales, cameras, first, layout, config.track, first_person)
     start = start.to(model.dtype)
 
+    kept = [_pack(first)] if overlays else []  # per frame, the silhouettes the overlays draw
+
     def frames_again():
         yield first_person
-        yield from (person for _, person in ahead)
+        for masks, person in ahead:
+            if overlays:
+                kept.append(masks)
+            yield person
 
     records = track(model, scales, cameras, frames_again(), start, config.track, progress)
     summaries = []
@@ -278,7 +291,8 @@ def track_sequences(
             )
         write_atomic(out / "track.csv", buf.getvalue())
         if overlays:
-            _write_overlays(model, scales[i], s, backgrounds[i], x, recs, out, config)
+            people = [k[i] for k in kept[: len(recs)]]
+            _write_overlays(model, scales[i], s, people, x, recs, out)
         if tb is not None:
             for rec in recs:
                 tb.add_scalar(f"track/{s.name}/contour_rms", rec.contour_rms, rec.frame)
@@ -299,7 +313,10 @@ def track_sequences(
     return summaries
 
 
-def _write_overlays(model, scales, seq, background, x, recs, out, config) -> None:
+def _write_overlays(model, scales, seq, people, x, recs, out) -> None:
+    """``overlay/`` and ``overlay.avi`` of one sequence: its frames, the tracked model's
+    contour and the person's silhouettes ``people`` (per frame, packed by :func:`_pack`) that
+    it was tracked to."""
     from torchfit.viz.overlay import fit_overlay
     from torchfit.viz.raster import render_silhouette
 
@@ -309,8 +326,9 @@ def _write_overlays(model, scales, seq, background, x, recs, out, config) -> Non
         verts = model(scales.expand(x.shape[0], -1, -1), q, t, r).vertices
     faces = model.faces.numpy()
     with VideoWriter(out / "overlay.avi", seq.fps) as video:
-        for f, (rec, image) in enumerate(zip(recs, seq.images(), strict=False)):
-            person = segment(image, background, config.segmentation).masks[0, 0].numpy()
+        width = seq.camera.image_size[0]
+        for f, (rec, image, packed) in enumerate(zip(recs, seq.images(), people, strict=False)):
+            person = np.unpackbits(packed, axis=-1, count=width).astype(bool)
             pix = project_points(verts[f : f + 1], cam)[0].numpy()
             mask = render_silhouette(pix, faces, seq.camera.image_size) > 0
             rgb = (image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
