@@ -26,15 +26,36 @@ def _tool(name: str):
 
 
 @needs_cmu
-def test_asf_amc_and_bvh_give_the_same_legs():
-    """01_01 as ASF/AMC and as BVH: the leg joints agree (the BVH has one more frame, a rest
-    pose first)."""
+def test_asf_amc_and_bvh_give_the_same_frames():
+    """01_01 as ASF/AMC and as BVH: the BVH file has one more frame, the skeleton's rest pose
+    first, which is not kept; then both count the same frames, and the leg joints agree in
+    every one."""
     amc = load_mocap(CMU / "01_01.amc")
     bvh = load_mocap(CMU / "01_01.bvh")
-    assert bvh.num_frames == amc.num_frames + 1
+    assert (bvh.skipped, amc.skipped) == (1, 0)
+    assert bvh.num_frames == amc.num_frames == 2751
     for name in ("l_hip", "l_knee", "l_ankle", "r_knee", "l_toe", "r_toe"):
-        gap = np.linalg.norm(amc.joints[name][500] - bvh.joints[name][501])
+        gap = np.linalg.norm(amc.joints[name] - bvh.joints[name], axis=-1).max()
         assert gap < 0.02, (name, gap)
+
+
+def test_a_rest_pose_before_the_motion_is_not_kept():
+    """A first frame the limbs jump away from (a T-pose before the capture) is dropped; a
+    clip whose first frame is its motion's, even one that starts with a fast move, is kept."""
+    from torchfit.synth.mocap import _rest_pose_first
+
+    rng = np.random.default_rng(0)
+    walk = np.cumsum(rng.normal(0, 0.003, (200, 16, 3)), axis=0)  # a few mm a frame
+    names = [f"j{i}" for i in range(15)] + ["back"]
+    joints = {n: walk[:, i] for i, n in enumerate(names)}
+    assert not _rest_pose_first(joints)
+    kick = {n: v.copy() for n, v in joints.items()}
+    kick["j3"][1:] += 0.06  # a hand 6 cm on at once (7 m/s at 120 Hz): motion
+    assert not _rest_pose_first(kick)
+    rest = {n: v.copy() for n, v in joints.items()}
+    rest["j3"][0] += np.array([0.0, 0.6, 0.3])  # an arm out sideways, one frame
+    assert _rest_pose_first(rest)
+    assert not _rest_pose_first({n: v[:2] for n, v in rest.items()})  # too short to tell
 
 
 @needs_cmu

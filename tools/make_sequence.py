@@ -29,7 +29,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bvh", required=True, help="motion clip (.bvh, or .amc with its .asf)")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--frames", type=int, required=True, help="frames to render")
-    parser.add_argument("--start", type=int, default=0, help="first clip frame")
+    parser.add_argument(
+        "--start",
+        type=int,
+        default=0,
+        help="first clip frame, counted from the motion's first (a rest pose the file starts "
+        "with, as the CMU BVH conversions' T-pose, is not kept)",
+    )
     parser.add_argument("--step", type=int, default=1, help="clip frames per rendered frame")
     parser.add_argument("--seed", type=int, required=True, help="body, room and camera seed")
     parser.add_argument(

@@ -10,10 +10,16 @@ rotation from the neutral pose. Given the body's neutral foot directions, each f
 (smallest rotation from where the shank carries it) until its ankle→toe line points along the
 capture's ankle→toe-base line, so a foot standing flat in the capture stands flat on the body.
 Spine, neck and wrists keep their neutral pose (the torso moves as one rigid block).
+
+A clip's frames start with its motion: a first frame that is the skeleton's rest pose (the
+CMU database's BVH conversions start with a T-pose one frame before the capture, from which
+the next frame's limbs jump by more than half a metre) is not kept, so a BVH and the ASF/AMC
+of the same trial count the same frames.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,6 +54,15 @@ _CMU_JOINTS = {
     "r_toe": ("RightToeBase", "rfoot"),
 }
 
+log = logging.getLogger(__name__)
+
+#: a first frame is a rest pose, not the motion, where some joint (relative to the hips'
+#: midpoint) moves from it to the next frame by more than this many metres and this many
+#: times the median of the same move over the following frames (01_01.bvh: 0.65 m against a
+#: median of 3 mm; a fast kick at 120 frames a second moves a joint a few centimetres)
+_REST_JUMP_M = 0.1
+_REST_JUMP_RATIO = 20.0
+
 # file axes (y up) -> world (z up)
 _Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
@@ -60,10 +75,12 @@ class MocapClip:
         joints: design.md joint name -> (F, 3) world positions, metres, z up (``back`` is
             the midpoint of the hips; ``l_toe`` and ``r_toe`` the bases of the toes).
         frame_time: seconds per frame.
+        skipped: leading frames of the file that are not the motion (a rest pose), 0 or 1.
     """
 
     joints: dict[str, np.ndarray]
     frame_time: float
+    skipped: int = 0
 
     @property
     def num_frames(self) -> int:
@@ -78,6 +95,10 @@ def load_mocap(path: str | Path, unit: float = CMU_METRES) -> MocapClip:
     Args:
         path: the clip.
         unit: the file's length unit in metres.
+
+    Returns:
+        The clip from its first frame of motion (a leading rest pose is not kept, see the
+        module's text; :attr:`MocapClip.skipped` counts it).
 
     Raises:
         DataError: unknown format, a missing file or joint.
@@ -104,7 +125,21 @@ def load_mocap(path: str | Path, unit: float = CMU_METRES) -> MocapClip:
         raise DataError(f"{path}: motion capture must be .bvh or .amc, got {path.suffix!r}")
     joints = {n: unit * world[:, i] @ _Z_UP.T for n, i in index.items()}
     joints["back"] = 0.5 * (joints["l_hip"] + joints["r_hip"])
-    return MocapClip(joints=joints, frame_time=frame_time)
+    skipped = int(_rest_pose_first(joints))
+    if skipped:
+        log.info("%s: frame 0 is a rest pose, not the motion: not kept", path.name)
+        joints = {n: v[skipped:] for n, v in joints.items()}
+    return MocapClip(joints=joints, frame_time=frame_time, skipped=skipped)
+
+
+def _rest_pose_first(joints: dict[str, np.ndarray], window: int = 120) -> bool:
+    """Whether the first frame is a rest pose the motion jumps away from (``_REST_JUMP_*``),
+    judged on the moves of the joints relative to the hips' midpoint over ``window`` frames."""
+    rel = np.stack([v[: window + 1] - joints["back"][: window + 1] for v in joints.values()], 1)
+    if rel.shape[0] < 3:
+        return False
+    moves = np.linalg.norm(np.diff(rel, axis=0), axis=-1).max(1)  # (frames - 1,)
+    return bool(moves[0] > max(_REST_JUMP_M, _REST_JUMP_RATIO * float(np.median(moves[1:]))))
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -90,7 +90,8 @@ def make_sequence(
         clip: a CMU ``.bvh`` or ``.amc`` file.
         frames: number of frames to render.
         seed: the subject's seed (body, room, camera, turn).
-        start: first clip frame.
+        start: first clip frame, counted from the clip's first frame of motion (a rest pose
+            the file starts with is not one, :func:`torchfit.synth.mocap.load_mocap`).
         step: clip frames between rendered frames (the sequence's rate is the clip's / step).
         cfg: synthesis options (defaults when None).
         model: an anny model.
@@ -174,6 +175,7 @@ def make_sequence(
     return {
         "clip": str(clip),
         "start": start,
+        "rest_frames_skipped": mocap.skipped,
         "step": step,
         "frames": frames,
         "fps": fps,
