@@ -161,6 +161,50 @@ def test_tracker_recovers_after_a_corrupted_frame(model, camera):
     assert all(s == "ok" for s in status[8:]), status
 
 
+@pytest.mark.parametrize("every", [1, 4])
+def test_a_lost_stretch_is_solved_again_now_and_then_and_left(model, camera, every, monkeypatch):
+    """Frames whose silhouette is wrong for a stretch (the person shifted by 60 px in frames
+    3-12): with ``recover_every`` the stretch's first ``every - 1`` frames and then every
+    ``every``-th are solved again from the last good frame, the others once (1: all of them).
+    Once the silhouettes are right again the tracker is back within ``every`` frames."""
+    import torchfit.track.tracker as tracker
+
+    opts = TrackOptions(
+        iterations=4, rounds=2, floor_weight=0.0, twist_weight=0.0, recover_every=every
+    )
+    layout = PoseLayout(model, opts)
+    n = 20
+    xs = torch.stack(
+        [
+            _pose(model, layout, camera, {"l_shoulder_abduct": 0.3 + 0.4 * math.sin(k / 5)})
+            for k in range(n)
+        ]
+    )
+    masks = _masks(model, camera[[0] * n], xs)
+    for k in range(3, 13):
+        masks[k] = torch.roll(masks[k], 60, dims=1)
+    solves = []
+    solve = tracker.solve_frame
+    monkeypatch.setattr(
+        tracker, "solve_frame", lambda *a, **k: solves.append(a[5]) or solve(*a, **k)
+    )
+    scales = torch.ones(1, model.num_segments, 3, dtype=torch.float64)
+    recs = track(model, scales, camera, (m[None] for m in masks), xs[:1], opts)[0]
+    status = [r.status for r in recs]
+    assert all(s == "uncertain" for s in status[3:13]), status
+    # the stretch lasts until a re-solve from the last good frame fits again
+    back = status.index("recovered")
+    assert 13 <= back < 13 + every and set(status[3:back]) == {"uncertain"}, status
+    # one solve a frame, and a second on the stretch's frames solved again
+    again = [p for p in range(back - 3 + 1) if p < every - 1 or p % every == 0]
+    assert len(solves) == n + len(again), (status, len(solves))
+    if every > 1:
+        assert len(again) < back - 3  # not every frame of the stretch
+    err = _joint_error_mm(model, torch.stack([r.x for r in recs]), xs)
+    assert all(s == "ok" for s in status[back + 1 :]), status
+    assert err[back:].max() < 60, err
+
+
 def _write_sequence(model, camera, tmp_path, video: bool = False):
     """A three-frame sequence folder (the model's own silhouettes on a flat background), and
     the same frames as a lossless video when ``video`` (None if OpenCV cannot write one)."""
@@ -650,6 +694,7 @@ def test_the_contour_terms_are_in_reference_pixels_and_the_rest_is_not(model, ca
         ({"confidence_px": 0.0}, "track.confidence_px"),
         ({"turn_smoothing": 1.5}, "track.turn_smoothing"),
         ({"distance_margin_px": -1}, "track.distance_margin_px"),
+        ({"recover_every": 0}, "track.recover_every"),
         ({"jacobian": "bogus"}, "track.jacobian"),
     ],
 )

@@ -31,7 +31,7 @@ _DEPTH_JOINTS = {
 Jacobian = Literal["analytic", "batched", "forward", "reverse", "autograd", "numeric"]
 _JACOBIAN_NAMES = get_args(Jacobian)
 #: options that count something (each at least 1)
-_COUNTS = ("iterations", "rounds", "samples_per_edge", "contour_stride")
+_COUNTS = ("iterations", "rounds", "samples_per_edge", "contour_stride", "recover_every")
 #: numeric options -> whether they must be > 0 (else >= 0)
 _NUMBERS = {
     "initial_damping": True,
@@ -82,6 +82,12 @@ class TrackOptions:
             sequence's running median (and ``recover_min_px``) is re-initialised from the last
             good frame.
         recover_min_px: see ``recover_factor``.
+        recover_every: in a stretch of frames over their limit (``uncertain`` ones), the
+            first ``recover_every - 1`` and then every ``recover_every``-th are solved again
+            from the last good frame, the others once (1: every frame). A re-start from a pose
+            that grows staler each frame seldom fits in a long stretch and costs a second
+            solve; tried now and then, it still brings the model back within
+            ``recover_every`` frames of the silhouette being right again.
         confidence_px: contour RMS at which the confidence is 0.5.
         floor_weight: pull of the lowest sole point towards the floor (z = 0), pixels per
             metre (a soft contact: someone jumping leaves the floor at that cost).
@@ -140,6 +146,7 @@ class TrackOptions:
     samples_per_edge: int = 2
     recover_factor: float = 2.5
     recover_min_px: float = 4.0
+    recover_every: int = 4
     confidence_px: float = 6.0
     floor_weight: float = 30.0
     min_diag: float = 1e-6

@@ -130,6 +130,7 @@ def track(
     rate = torch.zeros(b, dtype=x_start.dtype, device=x_start.device)  # turn per frame
     facing = heading(prev[:, 3:6])  # the last pose's heading
     good = x_start.clone()
+    lost = [0] * b  # frames in a row over their limit
     history: list[list[float]] = [[] for _ in range(b)]
     out: list[list[FrameRecord]] = [[] for _ in range(b)]
     it = iter(masks)
@@ -155,7 +156,12 @@ def track(
         ]
         # the limits, the history and the confidence are in reference pixels
         ref = res.reference_rms
-        bad = [i for i in range(b) if float(ref[i]) > limit[i]]
+        over = [i for i in range(b) if float(ref[i]) > limit[i]]
+        # in a stretch of them, the first few, then every recover_every-th
+        n = options.recover_every
+        bad = [i for i in over if lost[i] < n - 1 or lost[i] % n == 0]
+        for i in over:
+            status[i] = "uncertain"  # unless solved again below, and then within its limit
         if bad:
             idx = torch.tensor(bad)
             sub = person.subset(idx)
@@ -179,6 +185,7 @@ def track(
         ms = 1000 * (time.perf_counter() - t0) / b
         for i in range(b):
             rms = float(ref[i])
+            lost[i] = lost[i] + 1 if status[i] == "uncertain" else 0
             if status[i] != "uncertain":
                 history[i].append(rms)
                 good[i] = res.x[i]
