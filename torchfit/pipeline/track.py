@@ -167,17 +167,31 @@ def _masks(seqs: list[Sequence], backgrounds, options: SegmentationOptions):
 
 def _frames(seqs, backgrounds, cameras, config: TrackConfig, dtype, keep: bool = False):
     """Per frame, the tracker's person data, with the silhouettes (B, H, W) they were made from:
-    the first frame's as they are (its start needs them); the others' packed eight pixels to a
-    byte (:func:`_pack`) where ``keep`` (the overlays draw them), else None (they would be sent
-    for nothing)."""
+    the first frame's as they are (its start needs them); the others' packed (:func:`_pack`)
+    where ``keep`` (the overlays draw them), else None (they would be sent for nothing)."""
     for f, masks in enumerate(_masks(seqs, backgrounds, config.segmentation)):
         kept = masks if f == 0 else (_pack(masks) if keep else None)
         yield kept, frame_data(masks, cameras, config.track, dtype)
 
 
-def _pack(masks: torch.Tensor) -> np.ndarray:
-    """(B, H, W) bool silhouettes -> (B, H, ceil(W / 8)) uint8, eight pixels to a byte."""
-    return np.packbits(masks.numpy(), axis=-1)
+def _pack(masks: torch.Tensor) -> list[tuple]:
+    """(B, H, W) bool silhouettes -> per row its bounding box ``(v0, v1, u0, u1)`` and the box's
+    pixels eight to a byte (a few KB a frame where a whole mask is 52 KB at 720x576: the
+    overlays of long sequences keep every frame's)."""
+    out = []
+    for m in masks.numpy():
+        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+        box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1) if len(rows) else (0, 0, 0, 0)
+        out.append((box, np.packbits(m[box[0] : box[1], box[2] : box[3]], axis=-1)))
+    return out
+
+
+def _unpack(packed: tuple, size: tuple[int, int]) -> np.ndarray:
+    """:func:`_pack`'s row undone: the (H, W) bool silhouette of an image of ``size`` (w, h)."""
+    (v0, v1, u0, u1), bits = packed
+    mask = np.zeros((size[1], size[0]), bool)
+    mask[v0:v1, u0:u1] = np.unpackbits(bits, axis=-1, count=u1 - u0).astype(bool)
+    return mask
 
 
 def _joints(model: BodyModel, scales: torch.Tensor, x: torch.Tensor) -> dict[str, np.ndarray]:
@@ -326,9 +340,8 @@ def _write_overlays(model, scales, seq, people, x, recs, out) -> None:
         verts = model(scales.expand(x.shape[0], -1, -1), q, t, r).vertices
     faces = model.faces.numpy()
     with VideoWriter(out / "overlay.avi", seq.fps) as video:
-        width = seq.camera.image_size[0]
         for f, (rec, image, packed) in enumerate(zip(recs, seq.images(), people, strict=False)):
-            person = np.unpackbits(packed, axis=-1, count=width).astype(bool)
+            person = _unpack(packed, seq.camera.image_size)
             pix = project_points(verts[f : f + 1], cam)[0].numpy()
             mask = render_silhouette(pix, faces, seq.camera.image_size) > 0
             rgb = (image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
