@@ -14,13 +14,15 @@ The clips (`tools/make_sequence.py`, from the CMU motion capture in `--mocap`):
 - `test`: the held-out clip (`11_01.amc`, 60 frames from 200, every 4th, seed 19); report it,
   never tune on it (a run of its own: the two sets are never averaged together).
 
-Each clip is made once into `DIR/clips/<name>` and its subject fitted once with
-`configs/benchmark.yaml` into `DIR/fits/<name>` (kept: later runs into the same `DIR` reuse
-them). It is then tracked with `configs/track.yaml` and the `--set` overrides (`track.*`,
-`segmentation.*`) into `DIR/<tag>/<name>`. Writes `DIR/<tag>/track_clips.md` and `.csv`: per
-clip the mean joint error (design.md's joints but head_top), its parts along and across the
-camera's rays, the statuses and the tracker's ms per frame; then the mean and the median over
-the clips. Needs the `synth` extra (anny) to make the clips.
+Each clip is made once into `DIR/clips/<name>` (again where it has no
+`sequence/synth.json`: a clip made before that file counted a BVH's frames from its rest pose)
+and its subject fitted once with `configs/benchmark.yaml` into `DIR/fits/<name>` (kept: later
+runs into the same `DIR` reuse them). It is then tracked with `configs/track.yaml` and the
+`--set` overrides (`track.*`, `segmentation.*`) into `DIR/<tag>/<name>`. Writes
+`DIR/<tag>/track_clips.md` and `.csv`: per clip the mean joint error (design.md's joints but
+head_top), its parts along and across the camera's rays, the statuses and the tracker's ms per
+frame; then the mean and the median over the clips. Needs the `synth` extra (anny) to make the
+clips.
 """
 
 from __future__ import annotations
@@ -93,7 +95,9 @@ def _run(cmd: list[str]) -> None:
 def make_and_fit(clip: Clip, mocap: Path, out: Path, threads: int) -> tuple[Path, Path]:
     """The clip's sequence folder and its fitted subject folder, made where missing."""
     data, fit = out / "clips" / clip.name, out / "fits" / clip.name
-    if not (data / "sequence" / "camera.yaml").is_file():
+    # a clip made before sequences said what made them (sequence/synth.json) counted a BVH's
+    # frames from its rest pose, one capture frame earlier: made again (its subject is the same)
+    if not (data / "sequence" / "synth.json").is_file():
         _run(
             [sys.executable, str(ROOT / "tools" / "make_sequence.py"), "--bvh",
              str(mocap / clip.motion), "--out", str(data), "--frames", str(clip.frames),

@@ -106,6 +106,9 @@ def test_make_sequence_and_track_it(tmp_path):
     assert len(list((seq / "frames").glob("*.png"))) == 4
     for name in ("camera.yaml", "truth.json", "synth.json", "poses/pose6.png"):
         assert (out / "subject" / name).is_file(), name
+    made = json.loads((seq / "synth.json").read_text())  # what made the sequence
+    assert (made["start"], made["rest_frames_skipped"], made["step"]) == (300, 1, 4)
+    assert made["seed"] == 5 and made["frames"] == 4
     # these frames stand on the floor: the lower ankle as high as in the body's own standing
     # posture (the feet flat, the soles on the floor), not lifted or pointed
     standing = json.loads((out / "subject" / "truth.json").read_text())["joints_world"]["pose1"]

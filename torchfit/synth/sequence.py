@@ -6,9 +6,10 @@
   writes it (six postures, truth), so the body model can be fitted first;
 - ``<out>/sequence/``: the same body in the same room, light and camera, moving as the clip
   (:mod:`torchfit.synth.mocap`): ``camera.yaml``, ``background/bg01.png`` …,
-  ``frames/000000.png`` …, ``truth_masks/000000.png`` … (evaluation only) and
+  ``frames/000000.png`` …, ``truth_masks/000000.png`` … (evaluation only),
   ``truth.json`` = ``{"fps": F, "joints_world": [{joint: [x, y, z], …}, …]}`` (design.md's
-  joints, world frame, metres).
+  joints, world frame, metres) and ``synth.json`` (what made it: the clip, its frames, the
+  seed).
 
 Placement: the torso moves as the capture's (its frame from the hips and the neck); the clip is
 turned about the vertical so that the body faces the camera at its first frame (plus a random
@@ -172,7 +173,7 @@ def make_sequence(
     save_camera(scene.camera, seq / "camera.yaml")
     fps = 1.0 / (mocap.frame_time * step)
     (seq / "truth.json").write_text(json.dumps({"fps": fps, "joints_world": truth}, indent=1))
-    return {
+    made = {
         "clip": str(clip),
         "start": start,
         "rest_frames_skipped": mocap.skipped,
@@ -180,5 +181,7 @@ def make_sequence(
         "frames": frames,
         "fps": fps,
         "horizontal_shrink": round(shrink, 3),
-        "subject": summary,
+        "seed": seed,
     }
+    (seq / "synth.json").write_text(json.dumps(made, indent=1))
+    return {**made, "subject": summary}
