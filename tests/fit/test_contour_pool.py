@@ -12,7 +12,8 @@ from torchfit.body.model import BodyModel
 from torchfit.config.schema import RunConfig
 from torchfit.errors import ConfigError
 from torchfit.fit import contour_pool
-from torchfit.fit.model_contour import EdgeSampler, _pack, _unpack, select_contours
+from torchfit.fit.model_contour import EdgeSampler, select_contours
+from torchfit.image import pack_mask, unpack_mask
 from torchfit.pipeline.runtime import contour_workers_for
 
 SIZE = (160, 200)
@@ -74,7 +75,7 @@ def test_packed_silhouettes_come_back_unchanged():
     mask = np.zeros((50, 70), np.uint8)
     mask[10:31, 5:44] = 255 * (g.random((21, 39)) > 0.5)
     for m in (mask, np.zeros((50, 70), np.uint8), np.full((50, 70), 255, np.uint8)):
-        back = _unpack(pickle.loads(pickle.dumps(_pack(m))))
+        back = unpack_mask(pickle.loads(pickle.dumps(pack_mask(m))))
         assert back.dtype == np.uint8 and np.array_equal(back, m)
 
 

@@ -27,6 +27,7 @@ import torch
 from torchfit.errors import ShapeError, check_shape
 from torchfit.fit.contour_pool import map_chunks
 from torchfit.image.contours import on_image_frame
+from torchfit.image.morphology import pack_mask, unpack_mask
 from torchfit.viz.raster import outer_outlines, render_silhouette
 
 __all__ = [
@@ -143,7 +144,7 @@ class ContourSelection:
 
     def mask(self, i: int) -> np.ndarray:
         """The (H, W) uint8 silhouette of image ``i``: 255 inside, 0 outside."""
-        return _unpack(self.silhouettes[i])
+        return unpack_mask(self.silhouettes[i])
 
     def repeat_interleave(self, repeats: int) -> ContourSelection:
         """The same choice for every row of a batch folded ``repeats`` times (row b*r + i)."""
@@ -310,27 +311,7 @@ def _choose(item: tuple, sampler: EdgeSampler, size: tuple[int, int], tolerance:
     nearest = np.zeros(len(valid), np.int64)
     if len(on) and valid.any():
         nearest[valid] = cKDTree(p).query(contour[valid])[1]
-    return on, nearest, _pack(mask)
-
-
-def _pack(mask: np.ndarray) -> tuple:
-    """A rendered (H, W) 0/255 silhouette as its bounding box and bits (small to send)."""
-    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
-    if not len(rows):
-        return mask.shape, (0, 0, 0, 0), b""
-    box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1)
-    return mask.shape, box, np.packbits(mask[box[0] : box[1], box[2] : box[3]] > 0).tobytes()
-
-
-def _unpack(packed: tuple) -> np.ndarray:
-    """:func:`_pack` undone."""
-    shape, (v0, v1, u0, u1), bits = packed
-    mask = np.zeros(shape, np.uint8)
-    n = (v1 - v0) * (u1 - u0)
-    if n:
-        crop = np.unpackbits(np.frombuffer(bits, np.uint8), count=n).reshape(v1 - v0, u1 - u0)
-        mask[v0:v1, u0:u1] = crop * np.uint8(255)
-    return mask
+    return on, nearest, pack_mask(mask)
 
 
 def _selection(chosen: list, contour_shape, device: torch.device) -> ContourSelection:

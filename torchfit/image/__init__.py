@@ -40,6 +40,8 @@ from torchfit.image.morphology import (
     binary_opening,
     fill_holes,
     largest_component,
+    pack_mask,
+    unpack_mask,
 )
 from torchfit.image.photometric import (
     PhotometricResult,
@@ -68,6 +70,8 @@ __all__ = [
     "binary_opening",
     "binary_closing",
     "largest_component",
+    "pack_mask",
+    "unpack_mask",
     "fill_holes",
     "refine_edges",
     "PhotometricResult",

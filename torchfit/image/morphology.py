@@ -21,7 +21,14 @@ import cv2
 import numpy as np
 import torch
 
-__all__ = ["binary_opening", "binary_closing", "largest_component", "fill_holes"]
+__all__ = [
+    "binary_opening",
+    "binary_closing",
+    "largest_component",
+    "fill_holes",
+    "pack_mask",
+    "unpack_mask",
+]
 
 
 def _shift_reduce(x: torch.Tensor, k: int, dim: int, dilate: bool) -> torch.Tensor:
@@ -129,3 +136,24 @@ def fill_holes(mask: np.ndarray, max_fraction: float | None = None) -> np.ndarra
     small = np.zeros(n, dtype=np.uint8)
     small[1:] = stats[1:, cv2.CC_STAT_AREA] <= limit
     return (binary | small[labels]).astype(bool)
+
+
+def pack_mask(mask: np.ndarray) -> tuple:
+    """An (H, W) mask (non-zero = person) as its shape, bounding box and the box's bits: a few
+    KB where the whole mask is hundreds (small to keep or to send to another process)."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if not len(rows):
+        return mask.shape, (0, 0, 0, 0), b""
+    box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1)
+    return mask.shape, box, np.packbits(mask[box[0] : box[1], box[2] : box[3]] > 0).tobytes()
+
+
+def unpack_mask(packed: tuple) -> np.ndarray:
+    """:func:`pack_mask` undone: the (H, W) uint8 mask, 255 inside, 0 outside."""
+    shape, (v0, v1, u0, u1), bits = packed
+    mask = np.zeros(shape, np.uint8)
+    n = (v1 - v0) * (u1 - u0)
+    if n:
+        crop = np.unpackbits(np.frombuffer(bits, np.uint8), count=n).reshape(v1 - v0, u1 - u0)
+        mask[v0:v1, u0:u1] = crop * np.uint8(255)
+    return mask

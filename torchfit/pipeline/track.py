@@ -35,7 +35,13 @@ from torchfit.camera import (
     world_to_camera,
 )
 from torchfit.errors import DataError
-from torchfit.image import SegmentationOptions, fit_background, segment
+from torchfit.image import (
+    SegmentationOptions,
+    fit_background,
+    pack_mask,
+    segment,
+    unpack_mask,
+)
 from torchfit.io.bvh import write_bvh
 from torchfit.io.camera import load_camera
 from torchfit.io.export import write_json
@@ -175,23 +181,10 @@ def _frames(seqs, backgrounds, cameras, config: TrackConfig, dtype, keep: bool =
 
 
 def _pack(masks: torch.Tensor) -> list[tuple]:
-    """(B, H, W) bool silhouettes -> per row its bounding box ``(v0, v1, u0, u1)`` and the box's
-    pixels eight to a byte (a few KB a frame where a whole mask is 52 KB at 720x576: the
-    overlays of long sequences keep every frame's)."""
-    out = []
-    for m in masks.numpy():
-        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
-        box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1) if len(rows) else (0, 0, 0, 0)
-        out.append((box, np.packbits(m[box[0] : box[1], box[2] : box[3]], axis=-1)))
-    return out
-
-
-def _unpack(packed: tuple, size: tuple[int, int]) -> np.ndarray:
-    """:func:`_pack`'s row undone: the (H, W) bool silhouette of an image of ``size`` (w, h)."""
-    (v0, v1, u0, u1), bits = packed
-    mask = np.zeros((size[1], size[0]), bool)
-    mask[v0:v1, u0:u1] = np.unpackbits(bits, axis=-1, count=u1 - u0).astype(bool)
-    return mask
+    """(B, H, W) silhouettes -> per row :func:`~torchfit.image.morphology.pack_mask`'s bounding
+    box and bits (a few KB a frame where a whole mask is 52 KB at 720x576: the overlays of long
+    sequences keep every frame's)."""
+    return [pack_mask(m) for m in masks.numpy()]
 
 
 def _joints(model: BodyModel, scales: torch.Tensor, x: torch.Tensor) -> dict[str, np.ndarray]:
@@ -341,7 +334,7 @@ def _write_overlays(model, scales, seq, people, x, recs, out) -> None:
     faces = model.faces.numpy()
     with VideoWriter(out / "overlay.avi", seq.fps) as video:
         for f, (rec, image, packed) in enumerate(zip(recs, seq.images(), people, strict=False)):
-            person = _unpack(packed, seq.camera.image_size)
+            person = unpack_mask(packed) > 0
             pix = project_points(verts[f : f + 1], cam)[0].numpy()
             mask = render_silhouette(pix, faces, seq.camera.image_size) > 0
             rgb = (image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
