@@ -2,7 +2,8 @@
 its body fitted from its six postures, then tracked; one table.
 
     python benchmarks/track_clips.py --out DIR [--clips dev|wide|test] [--tag NAME]
-        [--set KEY=VALUE ...] [--threads 1] [--mocap ../shared/data/cmu-mocap-sample]
+        [--set KEY=VALUE ...] [--true-silhouettes] [--threads 1]
+        [--mocap ../shared/data/cmu-mocap-sample]
 
 The clips (`tools/make_sequence.py`, from the CMU motion capture in `--mocap`):
 
@@ -18,7 +19,9 @@ Each clip is made once into `DIR/clips/<name>` (again where it has no
 `sequence/synth.json`: a clip made before that file counted a BVH's frames from its rest pose)
 and its subject fitted once with `configs/benchmark.yaml` into `DIR/fits/<name>` (kept: later
 runs into the same `DIR` reuse them). It is then tracked with `configs/track.yaml` and the
-`--set` overrides (`track.*`, `segmentation.*`) into `DIR/<tag>/<name>`. Writes
+`--set` overrides (`track.*`, `segmentation.*`) into `DIR/<tag>/<name>`; with
+`--true-silhouettes`, from the clip's true silhouettes instead of its segmentation (a folder
+`DIR/clips/<name>/true_silhouettes/` linking the sequence, `truth_masks/` as its `masks/`). Writes
 `DIR/<tag>/track_clips.md` and `.csv`: per clip the mean joint error (design.md's joints but
 head_top), its parts along and across the camera's rays, the statuses and the tracker's ms per
 frame; then the mean and the median over the clips. Needs the `synth` extra (anny) to make the
@@ -113,6 +116,20 @@ def make_and_fit(clip: Clip, mocap: Path, out: Path, threads: int) -> tuple[Path
     return data / "sequence", fit / "subject"
 
 
+def with_true_silhouettes(sequence: Path) -> Path:
+    """A sequence folder beside ``sequence`` whose ``masks/`` are its true silhouettes
+    (``truth_masks/``), the rest linked: tracked with ``segmentation.method: masks`` it shows
+    what the tracker does with a perfect segmentation."""
+    folder = sequence.parent / "true_silhouettes"
+    folder.mkdir(exist_ok=True)
+    links = {"camera.yaml": "camera.yaml", "frames": "frames", "truth.json": "truth.json"}
+    links["masks"] = "truth_masks"
+    for name, target in links.items():
+        if not (folder / name).is_symlink():
+            (folder / name).symlink_to((sequence / target).resolve())
+    return folder
+
+
 def track(sequence: Path, model: Path, out: Path, sets: list[str], threads: int) -> dict:
     """Track one clip with ``configs/track.yaml`` and ``sets``; its ``eval.json``."""
     cmd = [
@@ -159,6 +176,11 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument(
+        "--true-silhouettes",
+        action="store_true",
+        help="track each clip from its true silhouettes (truth_masks/ as masks/)",
+    )
+    parser.add_argument(
         "--mocap", type=Path, default=ROOT.parent / "shared" / "data" / "cmu-mocap-sample"
     )
     args = parser.parse_args()
@@ -169,11 +191,16 @@ def main() -> None:
     results = {}
     for clip in clips:
         sequence, model = make_and_fit(clip, args.mocap, args.out, args.threads)
+        sets = args.set
+        if args.true_silhouettes:
+            sequence = with_true_silhouettes(sequence)
+            sets = [*sets, "segmentation.method=masks"]
         results[clip.name] = track(
-            sequence, model, args.out / args.tag / clip.name, args.set, args.threads
+            sequence, model, args.out / args.tag / clip.name, sets, args.threads
         )
     table, rows = summarise(results)
     sets = " ".join(f"--set {s}" for s in args.set) or "(shipped config)"
+    sets += " --true-silhouettes" if args.true_silhouettes else ""
     text = f"# Tracking `{args.tag}` on the {args.clips} clips: {sets}\n\n{table}"
     (args.out / args.tag / "track_clips.md").write_text(text)
     with (args.out / args.tag / "track_clips.csv").open("w", newline="") as f:

@@ -43,3 +43,32 @@ def test_the_table_has_each_clip_then_the_mean_and_median(tool):
     # one clip: no summary rows
     _, alone = tool.summarise({"a": _eval(60.0, 38, 2)})
     assert len(alone) == 2
+
+
+def test_true_silhouettes_are_a_sequence_of_its_own_masks(tool, tmp_path):
+    """--true-silhouettes tracks a linked copy of the clip whose masks/ are its truth_masks/:
+    a sequence folder whose silhouettes come from masks/ (segmentation.method auto or masks),
+    made once."""
+    import cv2
+    import numpy as np
+
+    from torchfit.io.camera import save_camera
+    from torchfit.pipeline.sequence import load_sequence
+    from torchfit.viz.preview import nominal_view
+
+    seq = tmp_path / "clip" / "sequence"
+    for sub in ("frames", "truth_masks", "background"):
+        (seq / sub).mkdir(parents=True)
+    save_camera(nominal_view(image_size=(64, 48)), seq / "camera.yaml")
+    for k in range(2):
+        cv2.imwrite(str(seq / "frames" / f"{k:06d}.png"), np.zeros((48, 64, 3), np.uint8))
+        cv2.imwrite(str(seq / "truth_masks" / f"{k:06d}.png"), np.zeros((48, 64), np.uint8))
+    (seq / "truth.json").write_text('{"fps": 30, "joints_world": [{}, {}]}')
+    folder = tool.with_true_silhouettes(seq)
+    assert tool.with_true_silhouettes(seq) == folder == tmp_path / "clip" / "true_silhouettes"
+    loaded = load_sequence(folder)
+    assert loaded.method == "masks" and [p.name for p in loaded.masks] == [
+        "000000.png",
+        "000001.png",
+    ]
+    assert loaded.fps == 30 and not loaded.background

@@ -5,15 +5,20 @@
 
 ``--model`` is a fitted subject folder (its ``params.json`` gives the template and the segment
 scales, which stay fixed). Each ``SEQ_DIR`` holds ``camera.yaml``, ``background/*.png``,
-``frames/000000.png`` … (or ``--video FILE``, one per sequence) and optionally ``truth.json``.
+``frames/000000.png`` … (or ``--video FILE``, one per sequence) and optionally ``masks/`` (your
+own silhouettes, one per frame: ``segmentation.method`` ``auto`` or ``masks``; no
+``background/`` needed then) and ``truth.json``. ``segmentation.method: chroma_key`` keys a
+coloured screen instead (``segmentation.chroma_key``).
 Several sequences are tracked together, one frame per batch row. Writes per sequence
 ``OUT_DIR/<k>_<name>/`` (``OUT_DIR`` itself for a single sequence): ``joints_world.json``,
 ``motion.bvh``, ``track.csv``, ``overlay/`` and ``overlay.avi`` with ``--overlays`` and, with
 a truth, ``eval.json``; TensorBoard scalars in ``OUT_DIR/tb``.
 
-Exit codes: 0 ok, 1 a sequence lost frames (status ``uncertain``), 2 bad arguments or config,
-3 output not writable, 4 model or sequence missing or unreadable (also a frame found unreadable
-while tracking).
+Exit codes: 0 ok, 1 a sequence lost frames (status ``uncertain``), 2 bad arguments or config
+(also a chroma key with neither ``segmentation.chroma_key.key`` nor background frames), 3 output
+not writable, 4 model or sequence missing or unreadable (also a frame or mask found unreadable
+or of another size while tracking, too few background frames, or a chroma key's background
+frames that show no screen).
 """
 
 from __future__ import annotations
@@ -30,7 +35,13 @@ import torch
 from tqdm import tqdm
 
 from torchfit.config import load_config
-from torchfit.errors import ConfigError, DataError, OutputError, TorchfitError
+from torchfit.errors import (
+    ConfigError,
+    DataError,
+    OutputError,
+    SegmentationError,
+    TorchfitError,
+)
 
 
 def _cpu_seconds() -> float:
@@ -115,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
             print("error: give one --video per --sequence", file=sys.stderr)
             return 2
         seqs = [
-            load_sequence(s, args.frames, v) for s, v in zip(args.sequence, videos, strict=True)
+            load_sequence(s, args.frames, v, config.segmentation.method)
+            for s, v in zip(args.sequence, videos, strict=True)
         ]
     except (DataError, KeyError, OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -144,9 +156,13 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"error: cannot write {out}: {exc}", file=sys.stderr)
         return 3
-    except DataError as exc:  # a frame or background image that cannot be read, mid-run
+    except (DataError, SegmentationError) as exc:  # a frame, mask or background image that
+        # cannot be read or used (too few, another size, a chroma key's frames with no screen)
         print(f"error: {exc}", file=sys.stderr)
         return 4
+    except ConfigError as exc:  # a chroma key with neither a key colour nor background frames
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except TorchfitError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

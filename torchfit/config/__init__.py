@@ -21,6 +21,7 @@ from torchfit.config.schema import (
     PartsConfig,
     RunConfig,
     SegmentationConfig,
+    SilhouetteSource,
     SolverConfig,
     StageConfig,
 )
@@ -30,6 +31,7 @@ __all__ = [
     "DataConfig",
     "ModelConfig",
     "SegmentationConfig",
+    "SilhouetteSource",
     "SolverConfig",
     "StageConfig",
     "FitConfig",

@@ -28,6 +28,7 @@ __all__ = [
     "RunConfig",
     "DataConfig",
     "ModelConfig",
+    "SilhouetteSource",
     "SegmentationConfig",
     "SolverConfig",
     "StageConfig",
@@ -125,19 +126,32 @@ class ModelConfig:
 
 
 @dataclass(frozen=True)
-class SegmentationConfig(SegmentationOptions):
-    """The ``segmentation`` section: the image side's own options
-    (:class:`torchfit.image.SegmentationOptions`, inherited) and where the silhouettes come
-    from.
+class SilhouetteSource(SegmentationOptions):
+    """The image side's own options (:class:`torchfit.image.SegmentationOptions`, inherited)
+    and where the silhouettes come from: the tracker's ``segmentation`` section, and the base
+    of the fit's (:class:`SegmentationConfig`).
 
     Attributes:
         method: ``background`` (subtraction against ``background/``, the first paper's),
-            ``masks`` (the subject's own ``masks/pose1`` … ``pose6``: 8-bit, > 127 is the
-            person; no ``background/`` needed), ``chroma_key`` (a coloured screen, the second
-            paper's; ``chroma_key`` below) or ``auto``: a subject's ``masks/`` where it has
-            that folder, background subtraction otherwise.
+            ``masks`` (your own silhouettes: a subject's ``masks/pose1`` … ``pose6``, a
+            sequence's ``masks/`` with one image per frame in the frames' order; 8-bit, > 127
+            is the person; no ``background/`` needed), ``chroma_key`` (a coloured screen, the
+            second paper's; ``chroma_key`` below) or ``auto``: ``masks/`` where the folder has
+            them, background subtraction otherwise.
         chroma_key: the key colour, tolerances and spill handling
             (:class:`torchfit.image.ChromaKeyOptions`).
+    """
+
+    method: Literal["auto", "background", "masks", "chroma_key"] = "auto"
+    chroma_key: ChromaKeyOptions = field(default_factory=ChromaKeyOptions)
+
+
+@dataclass(frozen=True)
+class SegmentationConfig(SilhouetteSource):
+    """The fit's ``segmentation`` section: :class:`SilhouetteSource` (the image side's options,
+    ``method`` and ``chroma_key``) and the checks of the postures' silhouettes.
+
+    Attributes:
         floor_reach_m: a posture whose silhouette's lowest pixel sees the floor further than
             this from the floor mark (metres) has lost its feet: the subject is ``poor_fit``
             with that reason (:func:`torchfit.pipeline.prepare.reach_floor`); None: not
@@ -149,8 +163,6 @@ class SegmentationConfig(SegmentationOptions):
         floor_retry_band: see ``floor_retry``.
     """
 
-    method: Literal["auto", "background", "masks", "chroma_key"] = "auto"
-    chroma_key: ChromaKeyOptions = field(default_factory=ChromaKeyOptions)
     floor_reach_m: float | None = 1.0
     floor_retry: bool = False
     floor_retry_band: float = 0.15

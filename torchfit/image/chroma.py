@@ -34,7 +34,15 @@ import torch.nn.functional as F
 
 from torchfit.errors import ConfigError, SegmentationError, ShapeError
 
-__all__ = ["ChromaKeyOptions", "estimate_key", "key_colour", "keyness", "chroma_key", "despill"]
+__all__ = [
+    "ChromaKeyOptions",
+    "estimate_key",
+    "key_colour",
+    "keyness",
+    "chroma_key",
+    "screen_frame",
+    "despill",
+]
 
 _EPS = 1e-6
 
@@ -235,6 +243,15 @@ def chroma_key(
     if off_screen is not None:
         person = torch.where(on_screen, person, off_screen)
     return person
+
+
+def screen_frame(background: torch.Tensor, options: ChromaKeyOptions) -> torch.Tensor:
+    """The empty screen's frames (N, 3, H, W) as one frame (1, 3, H, W) that
+    :func:`chroma_key` treats as it treats all of them (their mean under its gamma): a long
+    sequence keys every frame against it without averaging the frames again."""
+    _check("background", background)
+    g = options.gamma
+    return (background.clamp_min(0) ** g).mean(0, keepdim=True) ** (1.0 / g)
 
 
 def despill(

@@ -37,6 +37,7 @@ __all__ = [
     "StereoInfo",
     "Subject",
     "load_subject",
+    "resolve_method",
     "validate_subject",
     "validate_truth",
     "validate_facts",
@@ -231,7 +232,13 @@ def _load_masks(folder: Path, size: tuple[int, int] | None, problems: list[str])
     return masks
 
 
-def _resolve_method(folder: Path, method: str) -> str:
+def resolve_method(folder: Path, method: str) -> str:
+    """``segmentation.method`` for one subject or sequence folder: ``auto`` becomes ``masks``
+    where the folder has ``masks/``, else ``background``.
+
+    Raises:
+        DataError: an unknown method.
+    """
     if method not in SEGMENTATION_METHODS:
         raise DataError(
             f"segmentation method: expected one of {', '.join(SEGMENTATION_METHODS)}, "
@@ -261,7 +268,7 @@ def load_subject(folder: str | Path, method: str = "auto") -> Subject:
         DataError: an unknown ``method``.
     """
     folder = Path(folder)
-    subject = Subject(name=folder.name, folder=folder, method=_resolve_method(folder, method))
+    subject = Subject(name=folder.name, folder=folder, method=resolve_method(folder, method))
     problems = subject.problems
     if not folder.is_dir():
         problems.append(f"{folder}: subject folder not found")

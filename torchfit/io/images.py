@@ -122,17 +122,19 @@ def read_image(path: str | Path) -> np.ndarray:
     raise DataError(f"image {path}: expected 1, 3 or 4 channels, got shape {img.shape}")
 
 
-def read_mask(path: str | Path) -> np.ndarray:
+def read_mask(path: str | Path, size: tuple[int, int] | None = None) -> np.ndarray:
     """Read a single-channel 8-bit mask or label image, keeping its raw values.
 
     Args:
         path: image file (a colour file is accepted when its three channels are equal).
+        size: ``(width, height)`` the mask must have (a camera's ``image_size``), or None.
 
     Returns:
         ``(H, W)`` ``uint8`` array.
 
     Raises:
-        DataError: naming ``path`` if it is missing, unreadable, not 8-bit or truly colour.
+        DataError: naming ``path`` if it is missing, unreadable, not 8-bit, truly colour or
+        not of ``size``.
     """
     path = Path(path)
     img = _read_uint8(path, "mask")
@@ -144,6 +146,11 @@ def read_mask(path: str | Path) -> np.ndarray:
         ):
             raise DataError(f"mask {path}: expected a single-channel image, got colour {img.shape}")
         img = chan[:, :, 0]
+    if size is not None and img.shape != (size[1], size[0]):
+        raise DataError(
+            f"{path}: mask is {img.shape[1]}x{img.shape[0]} pixels, camera.yaml image_size is "
+            f"{size[0]}x{size[1]}"
+        )
     return np.ascontiguousarray(img)
 
 

@@ -35,6 +35,7 @@ __all__ = [
     "reach_floor",
     "floor_retry_options",
     "read_masks",
+    "chroma_silhouettes",
     "prepare_subject",
     "compact_images",
     "person_data",
@@ -294,17 +295,8 @@ def read_masks(subject: Subject) -> torch.Tensor:
     """
     if not subject.masks:
         raise DataError(f"{subject.folder / 'masks'}: no masks/ folder")
-    width, height = subject.camera.image_size
-    out = []
-    for path in subject.masks:
-        mask = read_mask(path)
-        if mask.shape != (height, width):
-            raise DataError(
-                f"{path}: mask is {mask.shape[1]}x{mask.shape[0]} pixels, camera.yaml "
-                f"image_size is {width}x{height}"
-            )
-        out.append(mask > 127)
-    return torch.from_numpy(np.stack(out))
+    size = subject.camera.image_size
+    return torch.from_numpy(np.stack([read_mask(p, size) > 127 for p in subject.masks]))
 
 
 def _chroma_key(
@@ -320,9 +312,24 @@ def _chroma_key(
             "the key colour, or segmentation.chroma_key.key"
         )
     key = key_colour(options, background, images.dtype, images.device)
-    raw = chroma_key(images, options, background, key)
-    masks = clean_mask(
-        raw,
+    masks = chroma_silhouettes(images, segmentation, background, key)
+    if options.despill:
+        images = despill(images, masks, key, options.spill_px)
+    return images, masks[:, 0]
+
+
+def chroma_silhouettes(
+    images: torch.Tensor,
+    segmentation: SegmentationOptions,
+    screen: torch.Tensor | None,
+    key: torch.Tensor,
+) -> torch.Tensor:
+    """(B, 1, H, W) bool silhouettes of chroma-keyed images (B, 3, H, W): the key
+    (:func:`~torchfit.image.chroma.chroma_key`, ``segmentation.chroma_key``'s options, the
+    empty screen's frames ``screen`` or None) cleaned as background subtraction's are."""
+    options = getattr(segmentation, "chroma_key", ChromaKeyOptions())
+    return clean_mask(
+        chroma_key(images, options, screen, key),
         segmentation.open_kernel,
         segmentation.close_kernel,
         segmentation.fill_holes,
@@ -330,9 +337,6 @@ def _chroma_key(
         segmentation.max_hole_area,
         segmentation.join_parts,
     )
-    if options.despill:
-        images = despill(images, masks, key, options.spill_px)
-    return images, masks[:, 0]
 
 
 def prepare_subject(subject: Subject, config: Config) -> PreparedSubject:

@@ -1,7 +1,8 @@
 """Motion capture runs: a fitted model, sequences of frames, the tracker, the outputs.
 
 :func:`track_sequences` reads B sequences (each ``camera.yaml``, ``background/``,
-``frames/``, optionally ``truth.json``), segments every frame, tracks them together
+``frames/``, optionally ``masks/`` and ``truth.json``: :mod:`torchfit.pipeline.sequence`),
+turns every frame into a silhouette (``segmentation.method``), tracks them together
 (:func:`torchfit.track.track`, one frame per batch row) and writes per sequence into its
 output folder: ``joints_world.json`` (``{"fps", "frames": [{joint: [x, y, z]}, …]}``,
 design.md's joints, world frame, metres), ``motion.bvh`` (the fitted skeleton, one rotation
@@ -19,7 +20,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,22 +34,17 @@ from torchfit.camera import (
     stack_cameras,
     world_to_camera,
 )
+from torchfit.config.schema import SilhouetteSource
 from torchfit.errors import DataError
-from torchfit.image import (
-    SegmentationOptions,
-    fit_background,
-    pack_mask,
-    segment,
-    unpack_mask,
-)
+from torchfit.image import pack_mask, unpack_mask
 from torchfit.io.bvh import write_bvh
-from torchfit.io.camera import load_camera
 from torchfit.io.export import write_json
 from torchfit.io.files import make_dirs, write_atomic
-from torchfit.io.images import list_images, load_frames, write_image
+from torchfit.io.images import write_image
 from torchfit.io.prefetch import prefetch, prefetch_process
-from torchfit.io.video import VideoWriter, read_video, video_frame_count
+from torchfit.io.video import VideoWriter
 from torchfit.measurements import JOINT_NAMES
+from torchfit.pipeline.sequence import Sequence, SequenceSegmenter, load_sequence
 from torchfit.track import PoseLayout, TrackOptions, frame_data, start_poses, track
 
 __all__ = [
@@ -72,37 +67,11 @@ _LIMBS = {
 
 @dataclass
 class TrackConfig:
-    """configs/track.yaml: the segmentation and the tracker's options."""
+    """configs/track.yaml: the segmentation (with where the silhouettes come from,
+    ``segmentation.method``) and the tracker's options."""
 
-    segmentation: SegmentationOptions = field(default_factory=SegmentationOptions)
+    segmentation: SilhouetteSource = field(default_factory=SilhouetteSource)
     track: TrackOptions = field(default_factory=TrackOptions)
-
-
-@dataclass
-class Sequence:
-    """A sequence folder (its frames as images, or a video file)."""
-
-    name: str
-    camera: Camera
-    background: list[Path]
-    frames: list[Path]
-    fps: float
-    truth: list[dict] | None
-    video: Path | None = None
-    video_frames: int = 0
-
-    @property
-    def num_frames(self) -> int:
-        """The number of frames to track."""
-        return self.video_frames if self.video is not None else len(self.frames)
-
-    def images(self) -> Iterator[torch.Tensor]:
-        """The frames in order, each (1, 3, H, W) RGB in [0, 1]."""
-        if self.video is None:
-            for path in self.frames:
-                yield load_frames([path], self.camera.image_size)[0]
-            return
-        yield from read_video(self.video, self.camera.image_size, self.video_frames)
 
 
 def load_fitted(folder: str | Path) -> tuple[str, torch.Tensor]:
@@ -123,59 +92,23 @@ def load_fitted(folder: str | Path) -> tuple[str, torch.Tensor]:
     return template, scales
 
 
-def load_sequence(
-    folder: str | Path, max_frames: int | None = None, video: str | Path | None = None
-) -> Sequence:
-    """Read a sequence folder's layout (images are read while tracking).
-
-    Args:
-        folder: the sequence folder.
-        max_frames: track only the first frames.
-        video: a video file to read the frames from instead of ``frames/``.
-
-    Raises:
-        DataError: a part is missing or the video cannot be read.
-    """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise DataError(f"sequence folder not found: {folder}")
-    camera = load_camera(folder / "camera.yaml")
-    background = list_images(folder / "background")
-    frames = [] if video is not None else list_images(folder / "frames")
-    if not background or (video is None and not frames):
-        raise DataError(f"{folder}: needs background/*.png and frames/*.png (or a video)")
-    count = 0
-    if video is not None:
-        count = video_frame_count(video)
-        if max_frames is not None:
-            count = min(count, max_frames)
-    truth, fps = None, 25.0
-    if (folder / "truth.json").is_file():
-        doc = json.loads((folder / "truth.json").read_text())
-        truth, fps = doc.get("joints_world"), float(doc.get("fps", fps))
-    if max_frames is not None:
-        frames = frames[:max_frames]
-    path = Path(video) if video is not None else None
-    return Sequence(folder.name, camera, background, frames, fps, truth, path, count)
-
-
-def _masks(seqs: list[Sequence], backgrounds, options: SegmentationOptions):
+def _masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter]):
     """Per frame, (B, H, W) silhouettes (a finished sequence repeats its last frame)."""
     n = max(s.num_frames for s in seqs)
-    sources = [s.images() for s in seqs]
+    sources = [g.silhouettes(s) for s, g in zip(seqs, segmenters, strict=True)]
     last: list[torch.Tensor | None] = [None] * len(seqs)
     for f in range(n):
-        for i, (s, bg) in enumerate(zip(seqs, backgrounds, strict=True)):
+        for i, s in enumerate(seqs):
             if f < s.num_frames:
-                last[i] = segment(next(sources[i]), bg, options).masks[0, 0]
+                last[i] = next(sources[i])
         yield torch.stack(last)
 
 
-def _frames(seqs, backgrounds, cameras, config: TrackConfig, dtype, keep: bool = False):
+def _frames(seqs, segmenters, cameras, config: TrackConfig, dtype, keep: bool = False):
     """Per frame, the tracker's person data, with the silhouettes (B, H, W) they were made from:
     the first frame's as they are (its start needs them); the others' packed (:func:`_pack`)
     where ``keep`` (the overlays draw them), else None (they would be sent for nothing)."""
-    for f, masks in enumerate(_masks(seqs, backgrounds, config.segmentation)):
+    for f, masks in enumerate(_masks(seqs, segmenters)):
         kept = masks if f == 0 else (_pack(masks) if keep else None)
         yield kept, frame_data(masks, cameras, config.track, dtype)
 
@@ -235,10 +168,7 @@ def track_sequences(
         scales = scales[None].expand(b, -1, -1)
     scales = scales.to(model.dtype).contiguous()
     cameras = stack_cameras([s.camera for s in sequences]).to(dtype=model.dtype)
-    backgrounds = []
-    for s in sequences:
-        frames, _ = load_frames(s.background, s.camera.image_size)
-        backgrounds.append(fit_background(frames, config.segmentation))
+    segmenters = [SequenceSegmenter(s, config.segmentation) for s in sequences]
     layout = PoseLayout(model, config.track)
     if start is not None and tuple(start.shape) != (b, layout.num_params):
         raise ValueError(
@@ -246,7 +176,7 @@ def track_sequences(
         )
     # the next frames are read, segmented and turned into contours and distance maps while
     # this one is tracked
-    args = (sequences, backgrounds, cameras, config, model.dtype, overlays)
+    args = (sequences, segmenters, cameras, config, model.dtype, overlays)
     if ahead == "process":
         ahead = prefetch_process(_frames, *args)
     elif ahead in ("thread", "none"):

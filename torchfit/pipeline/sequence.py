@@ -1,0 +1,167 @@
+"""A motion sequence's folder (:func:`load_sequence`) and its frames' silhouettes
+(:class:`SequenceSegmenter`): background subtraction against ``background/``, the sequence's
+own ``masks/`` (one per frame, from a segmenter of your own) or a chroma key, as
+``segmentation.method`` says (:class:`torchfit.config.SilhouetteSource`).
+
+The layout::
+
+    <sequence>/
+      camera.yaml
+      background/*.png     # the empty scene (not needed with masks/, nor for a chroma key
+                           # whose colour the config gives)
+      frames/000000.png …  # or a video file (tools/track.py --video)
+      masks/000000.png …   # optional: one silhouette per frame, in the frames' order
+                           # (8-bit, > 127 is the person, camera.yaml's image size)
+      truth.json           # optional: {"fps": F, "joints_world": [{joint: [x, y, z]}, …]}
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from torchfit.camera import Camera
+from torchfit.config.schema import SilhouetteSource
+from torchfit.errors import DataError
+from torchfit.image import fit_background, segment
+from torchfit.image.chroma import key_colour, screen_frame
+from torchfit.io.camera import load_camera
+from torchfit.io.dataset import resolve_method
+from torchfit.io.images import list_images, load_frames, read_mask
+from torchfit.io.video import read_video, video_frame_count
+from torchfit.pipeline.prepare import chroma_silhouettes
+
+__all__ = ["Sequence", "load_sequence", "SequenceSegmenter"]
+
+
+@dataclass
+class Sequence:
+    """A sequence folder (its frames as images, or a video file).
+
+    Attributes:
+        method: where its silhouettes come from: ``background``, ``masks`` or
+            ``chroma_key`` (``segmentation.method`` resolved for this folder).
+        masks: with ``masks``, one mask file per frame to track.
+    """
+
+    name: str
+    camera: Camera
+    background: list[Path]
+    frames: list[Path]
+    fps: float
+    truth: list[dict] | None
+    video: Path | None = None
+    video_frames: int = 0
+    method: str = "background"
+    masks: list[Path] = field(default_factory=list)
+
+    @property
+    def num_frames(self) -> int:
+        """The number of frames to track."""
+        return self.video_frames if self.video is not None else len(self.frames)
+
+    def images(self) -> Iterator[torch.Tensor]:
+        """The frames in order, each (1, 3, H, W) RGB in [0, 1]."""
+        if self.video is None:
+            for path in self.frames:
+                yield load_frames([path], self.camera.image_size)[0]
+            return
+        yield from read_video(self.video, self.camera.image_size, self.video_frames)
+
+
+def load_sequence(
+    folder: str | Path,
+    max_frames: int | None = None,
+    video: str | Path | None = None,
+    method: str = "auto",
+) -> Sequence:
+    """Read a sequence folder's layout (images and masks are read while tracking).
+
+    Args:
+        folder: the sequence folder.
+        max_frames: track only the first frames.
+        video: a video file to read the frames from instead of ``frames/``.
+        method: ``segmentation.method``: ``auto`` takes ``masks/`` where the folder has it.
+
+    Raises:
+        DataError: a part is missing (``background/`` for background subtraction, ``masks/``
+        with ``masks``, the frames), the masks do not number the frames or the first is not
+        the camera's size, the video cannot be read, or an unknown ``method``.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"sequence folder not found: {folder}")
+    method = resolve_method(folder, method)
+    camera = load_camera(folder / "camera.yaml")
+    background = list_images(folder / "background") if (folder / "background").is_dir() else []
+    frames = [] if video is not None else list_images(folder / "frames")
+    if video is None and not frames:
+        raise DataError(f"{folder}: needs frames/*.png (or a video)")
+    if method == "background" and not background:
+        raise DataError(
+            f"{folder}: needs background/*.png for background subtraction (or masks/ with "
+            "segmentation.method: masks or auto)"
+        )
+    count = len(frames)
+    if video is not None:
+        count = video_frame_count(video)
+    masks = list_images(folder / "masks") if method == "masks" else []
+    if method == "masks":
+        if len(masks) != count:
+            raise DataError(
+                f"{folder / 'masks'}: {len(masks)} masks for {count} frames (one per frame, in "
+                "the frames' order)"
+            )
+        read_mask(masks[0], camera.image_size)
+    if max_frames is not None:
+        frames, masks, count = frames[:max_frames], masks[:max_frames], min(count, max_frames)
+    truth, fps = None, 25.0
+    if (folder / "truth.json").is_file():
+        doc = json.loads((folder / "truth.json").read_text())
+        truth, fps = doc.get("joints_world"), float(doc.get("fps", fps))
+    path = Path(video) if video is not None else None
+    return Sequence(
+        folder.name, camera, background, frames, fps, truth, path, count if path else 0, method,
+        masks,
+    )  # fmt: skip
+
+
+class SequenceSegmenter:
+    """One sequence's frames to silhouettes, by its ``method``: the background model or the key
+    colour and empty screen are made once here (from ``background/``), then
+    :meth:`silhouettes` gives the frames' (H, W) bool silhouettes in order. It is sent to the
+    frame reader's process as it is.
+
+    Raises (on creation):
+        ConfigError: a chroma key with no key colour and no background frames;
+        SegmentationError: no screen in a chroma key's background frames.
+    """
+
+    def __init__(self, sequence: Sequence, options: SilhouetteSource) -> None:
+        self.options, self.method = options, sequence.method
+        self.model = self.key = self.screen = None
+        size = sequence.camera.image_size
+        empty = load_frames(sequence.background, size)[0] if sequence.background else None
+        if self.method == "background":
+            self.model = fit_background(empty, options)
+        elif self.method == "chroma_key":
+            self.key = key_colour(options.chroma_key, empty)
+            self.screen = None if empty is None else screen_frame(empty, options.chroma_key)
+
+    def silhouettes(self, sequence: Sequence) -> Iterator[torch.Tensor]:
+        """The frames' silhouettes, (H, W) bool each, in order (``masks/`` are read, not the
+        frames, with ``masks``)."""
+        if self.method == "masks":
+            size = sequence.camera.image_size
+            for path in sequence.masks[: sequence.num_frames]:
+                yield torch.from_numpy(read_mask(path, size) > 127)
+            return
+        for image in sequence.images():
+            if self.method == "chroma_key":
+                yield chroma_silhouettes(image, self.options, self.screen, self.key)[0, 0]
+            else:
+                yield segment(image, self.model, self.options).masks[0, 0]
