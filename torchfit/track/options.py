@@ -50,6 +50,7 @@ _NUMBERS = {
     "confidence_px": True,
     "turn_velocity": False,
     "turn_dead_deg": False,
+    "recover_arms_deg": False,
 }
 
 
@@ -88,6 +89,10 @@ class TrackOptions:
             that grows staler each frame seldom fits in a long stretch and costs a second
             solve; tried now and then, it still brings the model back within
             ``recover_every`` frames of the silhouette being right again.
+        recover_arms_deg: a frame the re-solve from the last good frame leaves over its limit
+            is solved once more from its own pose with both arms raised sideways to this many
+            degrees (shoulder abduction), the best contour kept: an arm left inside the body's
+            outline gets no pull from the silhouette's arm outside it (0: off).
         confidence_px: contour RMS at which the confidence is 0.5.
         floor_weight: pull of the lowest sole point towards the floor (z = 0), pixels per
             metre (a soft contact: someone jumping leaves the floor at that cost).
@@ -147,6 +152,7 @@ class TrackOptions:
     recover_factor: float = 2.5
     recover_min_px: float = 4.0
     recover_every: int = 4
+    recover_arms_deg: float = 45.0
     confidence_px: float = 6.0
     floor_weight: float = 30.0
     min_diag: float = 1e-6

@@ -18,11 +18,16 @@ its last good frame (or its start), pulled towards that frame (not the extrapola
 with twice the iterations; the frame's status is ``recovered`` when that brings it back
 under the threshold, ``uncertain`` otherwise; after either the velocity is reset (the next
 frame starts from this pose, not an extrapolation of a bad one), so one bad frame does not
-throw the next ones. ``confidence = 1 / (1 + (rms / confidence_px)²)``. The RMS these read is
-in reference pixels (``reference_px_per_m``), the records' ``contour_rms`` in the image's. A single
-camera cannot tell some poses apart (an arm in front of or behind the body), and the contour
-RMS cannot either; the confidence says how well the silhouette is explained, not which of
-those poses is right.
+throw the next ones. A frame that re-solve leaves over its limit is solved once more from its
+own pose with both arms raised sideways (``recover_arms_deg``): an arm the solve left inside
+the body's outline, beside or in front of the trunk, gets no pull from the silhouette's arm
+outside it (and the last good frame had it there too), while an arm raised where the
+person's is not is pulled back in by the model contour's own term; the best contour is
+kept. ``confidence = 1 / (1 + (rms / confidence_px)²)``. The RMS these read is in
+reference pixels (``reference_px_per_m``), the records' ``contour_rms`` in the image's. A
+single camera cannot tell some poses apart (an arm in front of or behind the body), and the
+contour RMS cannot either; the confidence says how well the silhouette is explained, not
+which of those poses is right.
 """
 
 from __future__ import annotations
@@ -75,6 +80,17 @@ def _predict(
         turn = torch.sign(rate) * (rate.abs() - math.radians(options.turn_dead_deg)).clamp_min(0)
         pred[:, 3:6] = turn_about_vertical(prev[:, 3:6], options.turn_velocity * turn)
     return pred
+
+
+def _keep_better(res, ref: torch.Tensor, rows: torch.Tensor, other) -> None:
+    """Where ``other`` (a solve of the rows ``rows`` of ``res``) explains the silhouette
+    better, take its pose, contour RMS (``ref``) and cost; add its iterations either way."""
+    for k, i in enumerate(rows.tolist()):
+        if float(other.reference_rms[k]) < float(ref[i]):
+            res.x[i] = other.x[k]
+            ref[i] = other.reference_rms[k]
+            res.cost[i] = other.cost[k]
+        res.iterations[i] += other.iterations[k]
 
 
 def _median(values: list[float]) -> float:
@@ -140,6 +156,8 @@ def track(
     recovery = replace(options, iterations=2 * options.iterations)
     # with no good frame yet, a contour that far off is all that can be told lost
     first = max(options.recover_min_px, LOST_CONFIDENCE * options.confidence_px)
+    # the shoulders' sideways raise in a pose row, left and right
+    abduct = [6 + model.dof_names.index(f"{side}_shoulder_abduct") for side in "lr"]
     for f, mask in enumerate(it):
         t0 = time.perf_counter()
         person = (
@@ -175,12 +193,22 @@ def track(
                 recovery,
                 sampler,
             )
-            for k, i in enumerate(bad):
-                if float(again.reference_rms[k]) < float(ref[i]):
-                    res.x[i] = again.x[k]
-                    ref[i] = again.reference_rms[k]
-                    res.cost[i] = again.cost[k]
-                res.iterations[i] += again.iterations[k]
+            _keep_better(res, ref, idx, again)
+            # an arm the solve left inside the body's outline gets no pull from the silhouette,
+            # nor does a start from the last good frame, which had it there too: the frame's
+            # own pose with both arms raised sideways (an arm raised where the person's is not
+            # is pulled back in by the model contour's own term)
+            still = [i for i in bad if float(ref[i]) > limit[i]]
+            if still and options.recover_arms_deg:
+                rows = torch.tensor(still)
+                raised = res.x[rows].clone()
+                raised[:, abduct] = math.radians(options.recover_arms_deg)
+                alt = solve_frame(
+                    model, scales[rows], person.subset(rows), layout, raised, raised, recovery,
+                    sampler,
+                )  # fmt: skip
+                _keep_better(res, ref, rows, alt)
+            for i in bad:
                 status[i] = "recovered" if float(ref[i]) <= limit[i] else "uncertain"
         ms = 1000 * (time.perf_counter() - t0) / b
         for i in range(b):
