@@ -206,6 +206,14 @@ def test_a_lost_stretch_is_solved_again_now_and_then_and_left(model, camera, eve
     assert err[back:].max() < 60, err
 
 
+def _three_frames(model, camera, dof: str, first: float, step: float):
+    """Three poses turning ``dof`` by ``step`` from ``first`` (radians), and their (3, H, W)
+    silhouettes as a bool array."""
+    layout = PoseLayout(model, TrackOptions())
+    xs = torch.stack([_pose(model, layout, camera, {dof: first + step * k}) for k in range(3)])
+    return xs, _masks(model, camera[[0] * 3], xs).numpy()
+
+
 def _write_sequence(model, camera, tmp_path, video: bool = False):
     """A three-frame sequence folder (the model's own silhouettes on a flat background), and
     the same frames as a lossless video when ``video`` (None if OpenCV cannot write one)."""
@@ -213,11 +221,7 @@ def _write_sequence(model, camera, tmp_path, video: bool = False):
 
     from torchfit.io.camera import save_camera
 
-    layout = PoseLayout(model, TrackOptions())
-    xs = torch.stack(
-        [_pose(model, layout, camera, {"l_shoulder_abduct": 0.3 + 0.1 * k}) for k in range(3)]
-    )
-    masks = _masks(model, camera[[0] * 3], xs).numpy()
+    _, masks = _three_frames(model, camera, "l_shoulder_abduct", 0.3, 0.1)
     folder = tmp_path / "seq"
     (folder / "background").mkdir(parents=True)
     (folder / "frames").mkdir()

@@ -9,31 +9,24 @@ import shutil
 import cv2
 import numpy as np
 import pytest
+import test_track
 import torch
-from test_track import SIZE, _masks, _pose, _write_sequence
+from test_track import SIZE, _three_frames, _write_sequence
 
-from torchfit.body.model import BodyModel
 from torchfit.errors import ConfigError, DataError
 from torchfit.image import fit_background, segment
 from torchfit.io.camera import save_camera
 from torchfit.io.images import list_images, load_frames
 from torchfit.pipeline.sequence import SequenceSegmenter
 from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences
-from torchfit.track import PoseLayout, TrackOptions
-from torchfit.viz.preview import nominal_view
+from torchfit.track import TrackOptions
 
 GREEN = (40, 190, 60)  # RGB of the screen
 PERSON = (200, 150, 90)
 
 
-@pytest.fixture(scope="module")
-def model():
-    return BodyModel("mpeg4_full")
-
-
-@pytest.fixture(scope="module")
-def camera():
-    return nominal_view(distance=3.5, azimuth_deg=0.0, focal=450.0, image_size=SIZE)
+# test_track's module fixtures, shared
+model, camera = test_track.model, test_track.camera
 
 
 def _config(**segmentation) -> TrackConfig:
@@ -109,11 +102,7 @@ def _write_green_sequence(model, camera, tmp_path, background: bool = True):
     """A three-frame sequence of the model's silhouettes before an unevenly lit green screen
     (sensor noise, and a darker band of screen beside the person as a shadow on it), the
     silhouettes drawn and the poses."""
-    layout = PoseLayout(model, TrackOptions())
-    xs = torch.stack(
-        [_pose(model, layout, camera, {"r_shoulder_abduct": 0.4 + 0.15 * k}) for k in range(3)]
-    )
-    masks = _masks(model, camera[[0] * 3], xs).numpy()
+    xs, masks = _three_frames(model, camera, "r_shoulder_abduct", 0.4, 0.15)
     folder = tmp_path / "green"
     (folder / "frames").mkdir(parents=True)
     save_camera(camera, folder / "camera.yaml")

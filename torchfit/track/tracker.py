@@ -156,8 +156,9 @@ def track(
     recovery = replace(options, iterations=2 * options.iterations)
     # with no good frame yet, a contour that far off is all that can be told lost
     first = max(options.recover_min_px, LOST_CONFIDENCE * options.confidence_px)
-    # the shoulders' sideways raise in a pose row, left and right
-    abduct = [6 + model.dof_names.index(f"{side}_shoulder_abduct") for side in "lr"]
+    # the shoulders' sideways raise in a pose row (a template without them: no such re-solve)
+    names = model.dof_names
+    abduct = [6 + names.index(n) for n in ("l_shoulder_abduct", "r_shoulder_abduct") if n in names]
     for f, mask in enumerate(it):
         t0 = time.perf_counter()
         person = (
@@ -199,7 +200,7 @@ def track(
             # own pose with both arms raised sideways (an arm raised where the person's is not
             # is pulled back in by the model contour's own term)
             still = [i for i in bad if float(ref[i]) > limit[i]]
-            if still and options.recover_arms_deg:
+            if still and options.recover_arms_deg and abduct:
                 rows = torch.tensor(still)
                 raised = res.x[rows].clone()
                 raised[:, abduct] = math.radians(options.recover_arms_deg)
