@@ -168,9 +168,9 @@ def _contour_rms(out) -> list[float]:
 
 
 def test_track_tool_exit_codes_for_masks_and_a_chroma_key(model, camera, tmp_path, capsys):
-    """tools/track.py: masks of another size, 4 with the file named; a chroma key with neither
-    a key colour nor background frames, 2 with the missing key named; the sequence's own
-    masks, 0."""
+    """tools/track.py: the sequence's own masks, 0 (a model the fit judged ``poor_fit`` too, with
+    a warning naming the fit's reasons); masks of another size, 4 with the file named; a chroma
+    key with neither a key colour nor background frames, 2 with the missing key named."""
     from scripts import load_script
 
     fitted = tmp_path / "fit"
@@ -192,6 +192,14 @@ def test_track_tool_exit_codes_for_masks_and_a_chroma_key(model, camera, tmp_pat
 
     try:
         assert run(folder, "masks", "track.iterations=3", "track.rounds=1") == 0
+        assert '"model_status": "ok"' in capsys.readouterr().out
+        doc = json.loads((fitted / "params.json").read_text())
+        doc.update(status="poor_fit", message="pose1: the silhouette does not reach the floor")
+        (fitted / "params.json").write_text(json.dumps(doc))
+        assert run(folder, "doubtful", "track.iterations=3", "track.rounds=1") == 0
+        out = capsys.readouterr()
+        assert "is poor_fit (pose1: the silhouette does not reach the floor)" in out.err
+        assert '"model_status": "poor_fit"' in out.out
         cv2.imwrite(str(folder / "masks" / "000001.png"), np.zeros((10, 10), np.uint8))
         capsys.readouterr()
         assert run(folder, "bad") == 4

@@ -102,6 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     from torchfit.pipeline.tensorboard import TensorBoardCallback
     from torchfit.pipeline.track import (
         TrackConfig,
+        fitted_status,
         load_fitted,
         load_sequence,
         skeleton_scales,
@@ -115,6 +116,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         template, scales = load_fitted(args.model)
+        status, why = fitted_status(args.model)
+        if status != "ok":
+            print(
+                f"warning: {args.model} is {status} ({why}); its segment lengths may be wrong, "
+                "and so may the tracked joints",
+                file=sys.stderr,
+            )
         model = BodyModel(template)
         if args.true_skeleton:
             truth = json.loads((Path(args.true_skeleton) / "truth.json").read_text())
@@ -168,6 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     frames = sum(s["frames"] for s in summaries)
     report = {
+        "model_status": status,
         "wall_s": round(wall, 2),
         "cpu_s": round(cpu, 2),
         "frames": frames,

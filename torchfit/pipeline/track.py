@@ -51,6 +51,7 @@ __all__ = [
     "TrackConfig",
     "Sequence",
     "load_fitted",
+    "fitted_status",
     "load_sequence",
     "track_sequences",
     "skeleton_scales",
@@ -90,6 +91,17 @@ def load_fitted(folder: str | Path) -> tuple[str, torch.Tensor]:
     except (ValueError, KeyError) as exc:
         raise DataError(f"{path}: not a fit's params.json ({exc})") from None
     return template, scales
+
+
+def fitted_status(folder: str | Path) -> tuple[str, str]:
+    """The fit's status of a fitted subject folder and its message (``params.json``; ``("ok",
+    "")`` where the file names none): a model the fit judged ``poor_fit`` tracks with segment
+    lengths it did not trust."""
+    try:
+        doc = json.loads((Path(folder) / "params.json").read_text())
+    except (OSError, ValueError):
+        return "ok", ""
+    return str(doc.get("status", "ok")), str(doc.get("message", ""))
 
 
 def _masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter]):
