@@ -6,7 +6,13 @@ import pytest
 import torch
 
 from torchfit.errors import ConfigError, SegmentationError
-from torchfit.image.chroma import ChromaKeyOptions, chroma_key, despill, estimate_key
+from torchfit.image.chroma import (
+    ChromaKeyOptions,
+    chroma_key,
+    despill,
+    estimate_key,
+    screen_frame,
+)
 
 GREEN = torch.tensor([0.2, 0.7, 0.25])
 
@@ -48,6 +54,20 @@ def test_person_edge_shadow_and_off_screen_pixels():
     given = ChromaKeyOptions(key=tuple(float(v) * 255 for v in GREEN))
     mask = chroma_key(frame, given)[0, 0]
     assert torch.equal(mask[:, 6:], truth[:, 6:])
+
+
+@pytest.mark.parametrize("gamma", [1.0, 2.2])
+def test_the_empty_screen_as_one_frame_keys_as_its_frames_do(gamma):
+    """A sequence keys every frame against ``screen_frame`` of its background frames, made once:
+    the same silhouettes as keying against the frames themselves."""
+    background, frame, truth = _scene()
+    options = ChromaKeyOptions(gamma=gamma)
+    screen = screen_frame(background, options)
+    assert screen.shape == (1, *background.shape[1:])
+    mask = chroma_key(frame, options, screen)[0, 0]
+    assert torch.equal(mask, chroma_key(frame, options, background)[0, 0])
+    if gamma == 1.0:  # the scene's person and shadow are keyed right in encoded values
+        assert torch.equal(mask, truth)
 
 
 def test_options_are_checked():
