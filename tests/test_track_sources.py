@@ -169,8 +169,9 @@ def _contour_rms(out) -> list[float]:
 
 def test_track_tool_exit_codes_for_masks_and_a_chroma_key(model, camera, tmp_path, capsys):
     """tools/track.py: the sequence's own masks, 0 (a model the fit judged ``poor_fit`` too, with
-    a warning naming the fit's reasons); masks of another size, 4 with the file named; a chroma
-    key with neither a key colour nor background frames, 2 with the missing key named."""
+    a warning naming the fit's reasons; silhouettes the model cannot explain, with a warning on
+    the sequence); masks of another size, 4 with the file named; a chroma key with neither a
+    key colour nor background frames, 2 with the missing key named."""
     from scripts import load_script
 
     fitted = tmp_path / "fit"
@@ -192,7 +193,20 @@ def test_track_tool_exit_codes_for_masks_and_a_chroma_key(model, camera, tmp_pat
 
     try:
         assert run(folder, "masks", "track.iterations=3", "track.rounds=1") == 0
-        assert '"model_status": "ok"' in capsys.readouterr().out
+        out = capsys.readouterr().out
+        assert '"model_status": "ok"' in out
+        drawn = json.loads(out[out.index("{") :])["sequences"][0]["median_confidence"]
+        # silhouettes no pose explains (a block): tracked, with a warning on the sequence
+        blocky = tmp_path / "blocky"
+        shutil.copytree(folder, blocky)
+        block = np.zeros((SIZE[1], SIZE[0]), np.uint8)
+        block[40:220, 100:220] = 255
+        for path in (blocky / "masks").iterdir():
+            cv2.imwrite(str(path), block)
+        assert run(blocky, "blocky", "track.iterations=3", "track.rounds=1") in (0, 1)
+        out = capsys.readouterr()
+        block = json.loads(out.out[out.out.index("{") :])["sequences"][0]["median_confidence"]
+        assert block < min(drawn, 0.5) and f"blocky: median confidence {block:.2f}" in out.err
         doc = json.loads((fitted / "params.json").read_text())
         doc.update(status="poor_fit", message="pose1: the silhouette does not reach the floor")
         (fitted / "params.json").write_text(json.dumps(doc))

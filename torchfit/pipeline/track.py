@@ -254,6 +254,7 @@ def track_sequences(
                 k: sum(r.status == k for r in recs) for k in ("ok", "recovered", "uncertain")
             },
             "ms_per_frame": float(np.mean([r.ms for r in recs])),
+            "median_confidence": float(np.median([r.confidence for r in recs])),
         }
         if s.truth is not None:
             summary.update(joint_errors(frames_doc, s.truth[: len(recs)], s.camera))
