@@ -69,7 +69,7 @@ def main() -> None:
             default = getattr(cfg.track, key)
             changes[key] = float(parsed) if isinstance(default, float) else parsed
         variants["baseline"] = dataclasses.replace(cfg.track, **changes)
-    template, scales = load_fitted(args.model)
+    template, scales, _, _ = load_fitted(args.model)
     model = BodyModel(template)
     sc = torch.tensor([scales[s] for s in model.template.segments], dtype=torch.float64)
     seq = load_sequence(args.sequence, args.frames + 1)

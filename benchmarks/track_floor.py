@@ -105,7 +105,7 @@ def main() -> None:
     p.add_argument("--config", default="configs/track.yaml")
     p.add_argument("--set", action="append", default=[], help="KEY=VALUE config override")
     args = p.parse_args()
-    template, scales = load_fitted(args.model)
+    template, scales, _, _ = load_fitted(args.model)
     model = BodyModel(template)
     sc = torch.tensor([scales[s] for s in model.template.segments], dtype=torch.float64)[None]
     truth = json.loads((Path(args.sequence) / "truth.json").read_text())["joints_world"]

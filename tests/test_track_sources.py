@@ -129,7 +129,7 @@ def _write_green_sequence(model, camera, tmp_path, background: bool = True):
 
 def _keyed(folder, cfg) -> np.ndarray:
     seq = load_sequence(folder, method=cfg.segmentation.method)
-    return np.stack([m.numpy() for m in SequenceSegmenter(seq, cfg.segmentation).silhouettes(seq)])
+    return np.stack([m.numpy() for m in SequenceSegmenter(seq, cfg.segmentation).silhouettes()])
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

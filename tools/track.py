@@ -107,7 +107,6 @@ def main(argv: list[str] | None = None) -> int:
     from torchfit.pipeline.tensorboard import TensorBoardCallback
     from torchfit.pipeline.track import (
         TrackConfig,
-        fitted_status,
         load_fitted,
         load_sequence,
         skeleton_scales,
@@ -120,8 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
-        template, scales = load_fitted(args.model)
-        status, why = fitted_status(args.model)
+        template, scales, status, why = load_fitted(args.model)
         if status != "ok":
             print(
                 f"warning: {args.model} is {status} ({why}); its segment lengths may be wrong, "

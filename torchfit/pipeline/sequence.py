@@ -132,9 +132,9 @@ def load_sequence(
 
 class SequenceSegmenter:
     """One sequence's frames to silhouettes, by its ``method``: the background model or the key
-    colour and empty screen are made once here (from ``background/``), then
-    :meth:`silhouettes` gives the frames' (H, W) bool silhouettes in order. It is sent to the
-    frame reader's process as it is.
+    colour and empty screen are made once here (from ``background/``, read only for those),
+    then :meth:`silhouettes` gives the frames' (H, W) bool silhouettes in order. It is sent to
+    the frame reader's process as it is.
 
     Raises (on creation):
         ConfigError: a chroma key with no key colour and no background frames;
@@ -142,26 +142,28 @@ class SequenceSegmenter:
     """
 
     def __init__(self, sequence: Sequence, options: SilhouetteSource) -> None:
-        self.options, self.method = options, sequence.method
+        self.sequence, self.options = sequence, options
         self.model = self.key = self.screen = None
+        if sequence.method == "masks":
+            return
         size = sequence.camera.image_size
         empty = load_frames(sequence.background, size)[0] if sequence.background else None
-        if self.method == "background":
+        if sequence.method == "background":
             self.model = fit_background(empty, options)
-        elif self.method == "chroma_key":
+        else:  # chroma_key
             self.key = key_colour(options.chroma_key, empty)
             self.screen = None if empty is None else screen_frame(empty, options.chroma_key)
 
-    def silhouettes(self, sequence: Sequence) -> Iterator[torch.Tensor]:
+    def silhouettes(self) -> Iterator[torch.Tensor]:
         """The frames' silhouettes, (H, W) bool each, in order (``masks/`` are read, not the
         frames, with ``masks``)."""
-        if self.method == "masks":
-            size = sequence.camera.image_size
-            for path in sequence.masks[: sequence.num_frames]:
-                yield torch.from_numpy(read_mask(path, size) > 127)
+        seq = self.sequence
+        if seq.method == "masks":
+            for path in seq.masks[: seq.num_frames]:
+                yield torch.from_numpy(read_mask(path, seq.camera.image_size) > 127)
             return
-        for image in sequence.images():
-            if self.method == "chroma_key":
+        for image in seq.images():
+            if seq.method == "chroma_key":
                 yield chroma_silhouettes(image, self.options, self.screen, self.key)[0, 0]
             else:
                 yield segment(image, self.model, self.options).masks[0, 0]

@@ -22,6 +22,7 @@ import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -50,8 +51,8 @@ from torchfit.track import PoseLayout, TrackOptions, frame_data, start_poses, tr
 __all__ = [
     "TrackConfig",
     "Sequence",
+    "FittedModel",
     "load_fitted",
-    "fitted_status",
     "load_sequence",
     "track_sequences",
     "skeleton_scales",
@@ -75,8 +76,25 @@ class TrackConfig:
     track: TrackOptions = field(default_factory=TrackOptions)
 
 
-def load_fitted(folder: str | Path) -> tuple[str, torch.Tensor]:
-    """Template name and (S, 3) segment scales of a fitted subject folder (params.json).
+class FittedModel(NamedTuple):
+    """What tracking reads of a fitted subject folder's ``params.json``.
+
+    Attributes:
+        template: the template's name.
+        scales: segment name -> its (3,) scales.
+        status: the fit's status (``ok`` where the file names none): a ``poor_fit`` model
+            tracks with segment lengths the fit did not trust.
+        message: the fit's reasons for that status.
+    """
+
+    template: str
+    scales: dict
+    status: str
+    message: str
+
+
+def load_fitted(folder: str | Path) -> FittedModel:
+    """The template, segment scales and status of a fitted subject folder (params.json).
 
     Raises:
         DataError: no or unreadable params.json.
@@ -90,24 +108,13 @@ def load_fitted(folder: str | Path) -> tuple[str, torch.Tensor]:
         template = doc["template"]
     except (ValueError, KeyError) as exc:
         raise DataError(f"{path}: not a fit's params.json ({exc})") from None
-    return template, scales
-
-
-def fitted_status(folder: str | Path) -> tuple[str, str]:
-    """The fit's status of a fitted subject folder and its message (``params.json``; ``("ok",
-    "")`` where the file names none): a model the fit judged ``poor_fit`` tracks with segment
-    lengths it did not trust."""
-    try:
-        doc = json.loads((Path(folder) / "params.json").read_text())
-    except (OSError, ValueError):
-        return "ok", ""
-    return str(doc.get("status", "ok")), str(doc.get("message", ""))
+    return FittedModel(template, scales, str(doc.get("status", "ok")), str(doc.get("message", "")))
 
 
 def _masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter]):
     """Per frame, (B, H, W) silhouettes (a finished sequence repeats its last frame)."""
     n = max(s.num_frames for s in seqs)
-    sources = [g.silhouettes(s) for s, g in zip(seqs, segmenters, strict=True)]
+    sources = [g.silhouettes() for g in segmenters]
     last: list[torch.Tensor | None] = [None] * len(seqs)
     for f in range(n):
         for i, s in enumerate(seqs):
