@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -29,6 +29,7 @@ from torchfit.config.schema import SilhouetteSource
 from torchfit.errors import DataError
 from torchfit.image import fit_background, segment
 from torchfit.image.chroma import key_colour, screen_frame
+from torchfit.image.shadow import bridged
 from torchfit.io.camera import load_camera
 from torchfit.io.dataset import resolve_method
 from torchfit.io.images import list_images, load_frames, read_mask
@@ -141,8 +142,10 @@ class SequenceSegmenter:
         SegmentationError: no screen in a chroma key's background frames.
     """
 
-    def __init__(self, sequence: Sequence, options: SilhouetteSource) -> None:
-        self.sequence, self.options = sequence, options
+    def __init__(
+        self, sequence: Sequence, options: SilhouetteSource, bridge_min: float = 0.0
+    ) -> None:
+        self.sequence, self.options, self.bridge_min = sequence, options, bridge_min
         self.model = self.key = self.screen = None
         if sequence.method == "masks":
             return
@@ -157,13 +160,44 @@ class SequenceSegmenter:
     def silhouettes(self) -> Iterator[torch.Tensor]:
         """The frames' silhouettes, (H, W) bool each, in order (``masks/`` are read, not the
         frames, with ``masks``)."""
+        for mask, _ in self.segmented():
+            yield mask
+
+    def segmented(self) -> Iterator[tuple[torch.Tensor, torch.Tensor | None]]:
+        """Per frame in order, its silhouette and a second one or None, each (H, W) bool.
+
+        The second is made by background subtraction where the shadow test removed pixels
+        that lie between the body above them and a part of the person cut off below them in
+        their column (:func:`torchfit.image.shadow.bridged`), at least ``bridge_min`` of the
+        silhouette's area: the frame segmented again with those pixels given back
+        (``shadow_bridge``). Light trousers before a light wall are an attenuated copy of it,
+        and the first silhouette then ends at the hips; a shadow on the floor between the feet
+        is bridged too, so which one a frame is is for the tracker to tell (from where it
+        expects the body). 0 makes no second silhouette.
+        """
         seq = self.sequence
         if seq.method == "masks":
             for path in seq.masks[: seq.num_frames]:
-                yield torch.from_numpy(read_mask(path, seq.camera.image_size) > 127)
+                yield torch.from_numpy(read_mask(path, seq.camera.image_size) > 127), None
             return
         for image in seq.images():
             if seq.method == "chroma_key":
-                yield chroma_silhouettes(image, self.options, self.screen, self.key)[0, 0]
-            else:
-                yield segment(image, self.model, self.options).masks[0, 0]
+                yield chroma_silhouettes(image, self.options, self.screen, self.key)[0, 0], None
+                continue
+            result = segment(image, self.model, self.options)
+            yield result.masks[0, 0], self._bridged(image, result)
+
+    def _bridged(self, image: torch.Tensor, result) -> torch.Tensor | None:
+        """The second silhouette of :meth:`segmented` (None where there is none)."""
+        opts = self.options
+        if not (self.bridge_min > 0 and opts.shadow_test) or opts.shadow_bridge:
+            return None
+        removed = result.shadow
+        least = self.bridge_min * float(result.masks.sum())
+        if float(removed.sum()) < least:  # what the bridge gives back is some of these
+            return None
+        raw = result.distance > opts.threshold
+        gained = removed & bridged(raw & ~removed, opts.open_kernel)
+        if float(gained.sum()) < least:
+            return None
+        return segment(image, self.model, replace(opts, shadow_bridge=True)).masks[0, 0]

@@ -47,6 +47,7 @@ from torchfit.io.video import VideoWriter
 from torchfit.measurements import JOINT_NAMES
 from torchfit.pipeline.sequence import Sequence, SequenceSegmenter, load_sequence
 from torchfit.track import PoseLayout, TrackOptions, frame_data, start_poses, track
+from torchfit.track.silhouettes import FrameSilhouettes
 
 __all__ = [
     "TrackConfig",
@@ -112,24 +113,37 @@ def load_fitted(folder: str | Path) -> FittedModel:
 
 
 def _masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter]):
-    """Per frame, (B, H, W) silhouettes (a finished sequence repeats its last frame)."""
+    """Per frame, (B, H, W) silhouettes and the rows' second silhouettes (a list, None where a
+    row has none; :meth:`SequenceSegmenter.segmented`); a finished sequence repeats its last
+    frame."""
     n = max(s.num_frames for s in seqs)
-    sources = [g.silhouettes() for g in segmenters]
-    last: list[torch.Tensor | None] = [None] * len(seqs)
+    sources = [g.segmented() for g in segmenters]
+    last: list[tuple | None] = [None] * len(seqs)
     for f in range(n):
         for i, s in enumerate(seqs):
             if f < s.num_frames:
                 last[i] = next(sources[i])
-        yield torch.stack(last)
+        yield torch.stack([m for m, _ in last]), [second for _, second in last]
 
 
 def _frames(seqs, segmenters, cameras, config: TrackConfig, dtype, keep: bool = False):
-    """Per frame, the tracker's person data, with the silhouettes (B, H, W) they were made from:
-    the first frame's as they are (its start needs them); the others' packed (:func:`_pack`)
-    where ``keep`` (the overlays draw them), else None (they would be sent for nothing)."""
-    for f, masks in enumerate(_masks(seqs, segmenters)):
+    """Per frame, what the tracker fits: the person data (a :class:`FrameSilhouettes` where a
+    row has a second silhouette), with the silhouettes (B, H, W) they were made from: the
+    first frame's as they are (its start needs them); the others' packed (:func:`_pack`,
+    with the rows' second ones) where ``keep`` (the overlays draw them), else None (they would
+    be sent for nothing)."""
+    for f, (masks, seconds) in enumerate(_masks(seqs, segmenters)):
+        person = frame_data(masks, cameras, config.track, dtype)
         kept = masks if f == 0 else (_pack(masks) if keep else None)
-        yield kept, frame_data(masks, cameras, config.track, dtype)
+        if any(s is not None for s in seconds):
+            has = torch.tensor([s is not None for s in seconds])
+            second = torch.stack(
+                [m if s is None else s for m, s in zip(masks, seconds, strict=True)]
+            )
+            person = FrameSilhouettes(person, masks, second, has)
+            if keep and f > 0:
+                kept = (kept, [None if s is None else pack_mask(s.numpy()) for s in seconds])
+        yield kept, person
 
 
 def _pack(masks: torch.Tensor) -> list[tuple]:
@@ -187,7 +201,9 @@ def track_sequences(
         scales = scales[None].expand(b, -1, -1)
     scales = scales.to(model.dtype).contiguous()
     cameras = stack_cameras([s.camera for s in sequences]).to(dtype=model.dtype)
-    segmenters = [SequenceSegmenter(s, config.segmentation) for s in sequences]
+    segmenters = [
+        SequenceSegmenter(s, config.segmentation, config.track.bridge_min) for s in sequences
+    ]
     layout = PoseLayout(model, config.track)
     if start is not None and tuple(start.shape) != (b, layout.num_params):
         raise ValueError(
@@ -204,10 +220,20 @@ def track_sequences(
         raise ValueError(f"ahead: expected 'thread', 'process' or 'none', got {ahead!r}")
     first, first_person = next(ahead)
     if start is None:
-        start = start_poses(model, scales, cameras, first, layout, config.track, first_person)
+        plain = first_person.person if isinstance(first_person, FrameSilhouettes) else first_person
+        start = start_poses(model, scales, cameras, first, layout, config.track, plain)
     start = start.to(model.dtype)
 
-    kept = [_pack(first)] if overlays else []  # per frame, the silhouettes the overlays draw
+    # per frame, the silhouettes the overlays draw (with the rows' second ones where any)
+    kept = []
+    if overlays:
+        kept.append(_pack(first))
+        if isinstance(first_person, FrameSilhouettes):
+            seconds = [
+                pack_mask(m.numpy()) if h else None
+                for m, h in zip(first_person.second, first_person.has, strict=True)
+            ]
+            kept[0] = (kept[0], seconds)
 
     def frames_again():
         yield first_person
@@ -232,7 +258,9 @@ def track_sequences(
         write_bvh(out / "motion.bvh", model_motion(model, scales[i], q, t, r, 1.0 / s.fps))
         buf = io.StringIO()
         w = csv.writer(buf)
-        w.writerow(["frame", "status", "cost", "iterations", "ms", "contour_rms", "confidence"])
+        w.writerow(
+            ["frame", "status", "cost", "iterations", "ms", "contour_rms", "confidence", "bridged"]
+        )
         for rec in recs:
             w.writerow(
                 [
@@ -243,11 +271,15 @@ def track_sequences(
                     f"{rec.ms:.1f}",
                     f"{rec.contour_rms:.3f}",
                     f"{rec.confidence:.3f}",
+                    int(rec.bridged),
                 ]
             )
         write_atomic(out / "track.csv", buf.getvalue())
         if overlays:
-            people = [k[i] for k in kept[: len(recs)]]
+            people = [
+                (k[1][i] if rec.bridged else k[0][i]) if isinstance(k, tuple) else k[i]
+                for k, rec in zip(kept, recs, strict=False)
+            ]
             _write_overlays(model, scales[i], s, people, x, recs, out)
         if tb is not None:
             for rec in recs:

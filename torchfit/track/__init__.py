@@ -2,6 +2,7 @@
 sequences."""
 
 from torchfit.track.frame import FrameResult, PoseLayout, TrackOptions, solve_frame
+from torchfit.track.silhouettes import FrameSilhouettes
 from torchfit.track.start import start_poses
 from torchfit.track.tracker import FrameRecord, frame_data, track
 
@@ -11,6 +12,7 @@ __all__ = [
     "FrameResult",
     "solve_frame",
     "FrameRecord",
+    "FrameSilhouettes",
     "frame_data",
     "track",
     "start_poses",

@@ -51,6 +51,7 @@ _NUMBERS = {
     "turn_velocity": False,
     "turn_dead_deg": False,
     "recover_arms_deg": False,
+    "bridge_min": False,
 }
 
 
@@ -140,6 +141,14 @@ class TrackOptions:
             limits ``recover_min_px`` and ``confidence_px`` then mean the same on a camera of
             any resolution. ``contour_rms`` in the frame records stays in the image's pixels;
             ``distance_margin_px`` is the image's. ``None``: everything in the image's pixels.
+        bridge_min: with background subtraction, a frame whose shadow test removed pixels
+            between the body above them and a part of the person cut off below them, at least
+            this fraction of the silhouette's area, is segmented a second time with them given
+            back (``segmentation.shadow_bridge``); the tracker takes that silhouette where
+            most of what it adds lies on the body as the predicted pose draws it
+            (:class:`torchfit.track.tracker.FrameSilhouettes`). Light trousers before a light
+            wall are an attenuated copy of it, and the first silhouette ends at the hips; a
+            shadow on the floor between the feet is bridged too, and stays out (0: off).
     """
 
     iterations: int = 1
@@ -169,6 +178,7 @@ class TrackOptions:
     turn_smoothing: float = 0.6
     turn_dead_deg: float = 2.0
     reference_px_per_m: float | None = 210.0
+    bridge_min: float = 0.05
 
     def __post_init__(self) -> None:
         ref = self.reference_px_per_m

@@ -46,8 +46,9 @@ from torchfit.fit.model_contour import EdgeSampler
 from torchfit.fit.person import PersonData, person_data_from_masks
 from torchfit.track.frame import PoseLayout, TrackOptions, solve_frame
 from torchfit.track.options import LOST_CONFIDENCE
+from torchfit.track.silhouettes import SECOND_TRIAL_EVERY, FrameSilhouettes, expected
 
-__all__ = ["FrameRecord", "frame_data", "track"]
+__all__ = ["FrameRecord", "FrameSilhouettes", "frame_data", "track"]
 
 
 @dataclass
@@ -62,6 +63,7 @@ class FrameRecord:
     contour_rms: float
     confidence: float
     x: torch.Tensor = field(repr=False)
+    bridged: bool = False  # tracked to the frame's second silhouette (FrameSilhouettes)
 
 
 def _wrapped(a: torch.Tensor) -> torch.Tensor:
@@ -82,15 +84,19 @@ def _predict(
     return pred
 
 
-def _keep_better(res, ref: torch.Tensor, rows: torch.Tensor, other) -> None:
+def _keep_better(res, ref: torch.Tensor, rows: torch.Tensor, other) -> list[int]:
     """Where ``other`` (a solve of the rows ``rows`` of ``res``) explains the silhouette
-    better, take its pose, contour RMS (``ref``) and cost; add its iterations either way."""
+    better, take its pose, contour RMS (``ref``) and cost; add its iterations either way.
+    Returns the rows that took it."""
+    took = []
     for k, i in enumerate(rows.tolist()):
         if float(other.reference_rms[k]) < float(ref[i]):
             res.x[i] = other.x[k]
             ref[i] = other.reference_rms[k]
             res.cost[i] = other.cost[k]
+            took.append(i)
         res.iterations[i] += other.iterations[k]
+    return took
 
 
 def _median(values: list[float]) -> float:
@@ -129,7 +135,9 @@ def track(
         scales: (B, S, 3) fixed segment scales per sequence.
         cameras: B cameras.
         masks: per frame, (B, H, W) bool silhouettes (a sequence that has ended repeats its
-            last mask; the caller drops those frames), or their :func:`frame_data`.
+            last mask; the caller drops those frames), their :func:`frame_data`, or a
+            :class:`FrameSilhouettes` (a second silhouette for some rows, taken where the
+            predicted pose draws the body over what it adds).
         x_start: (B, P) the pose rows of the frame before the first.
         options: tracker options.
         progress: wraps the frame iterator.
@@ -147,6 +155,7 @@ def track(
     facing = heading(prev[:, 3:6])  # the last pose's heading
     good = x_start.clone()
     lost = [0] * b  # frames in a row over their limit
+    refused = [0] * b  # frames in a row with a second silhouette not taken
     history: list[list[float]] = [[] for _ in range(b)]
     out: list[list[FrameRecord]] = [[] for _ in range(b)]
     it = iter(masks)
@@ -161,13 +170,39 @@ def track(
     abduct = [6 + names.index(n) for n in ("l_shoulder_abduct", "r_shoulder_abduct") if n in names]
     for f, mask in enumerate(it):
         t0 = time.perf_counter()
-        person = (
-            mask
-            if isinstance(mask, PersonData)
-            else frame_data(mask, cameras, options, model.dtype)
-        )
+        second = mask if isinstance(mask, FrameSilhouettes) else None
+        if second is not None:
+            person = second.person
+        elif isinstance(mask, PersonData):
+            person = mask
+        else:
+            person = frame_data(mask, cameras, options, model.dtype)
         pred = layout.clip(_predict(prev, prev2, rate, options))
+        bridged = [False] * b
+        if second is not None:
+            # a row's second silhouette where the predicted pose draws the body over what it
+            # adds, or else where a solve to it explains it better than the first's solve
+            bridged = expected(model, scales, cameras, pred, second)
+            person = second.chosen(bridged, cameras, options, model.dtype)
         res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)
+        if second is not None:
+            # the solve to the second silhouette: in a stretch of frames whose second one was
+            # refused, every SECOND_TRIAL_EVERY-th (the frames of a stretch are alike)
+            rest = [i for i in range(b) if bool(second.has[i]) and not bridged[i]]
+            for i in range(b):
+                refused[i] = refused[i] + 1 if i in rest else 0
+            rest = [i for i in rest if (refused[i] - 1) % SECOND_TRIAL_EVERY == 0]
+            if rest:
+                idx = torch.tensor(rest)
+                other = frame_data(second.second[idx], cameras[idx], options, model.dtype)
+                alt = solve_frame(
+                    model, scales[idx], other, layout, pred[idx], pred[idx], options, sampler
+                )
+                took = _keep_better(res, res.reference_rms, idx, alt)
+                if took:
+                    for i in took:
+                        bridged[i], refused[i] = True, 0
+                    person = second.chosen(bridged, cameras, options, model.dtype)
         status = ["ok"] * b
         limit = [
             max(options.recover_min_px, options.recover_factor * _median(h)) if h else first
@@ -228,6 +263,7 @@ def track(
                     contour_rms=float(res.contour_rms[i]),  # the image's pixels
                     confidence=1.0 / (1.0 + (rms / options.confidence_px) ** 2),
                     x=res.x[i].detach().clone(),
+                    bridged=bridged[i],
                 )
             )
         okay = torch.tensor([s == "ok" for s in status], device=res.x.device)
