@@ -108,7 +108,7 @@ ALLOWED = {
     "eval": {"io", "measurements", "status"},
     "synth": {"camera", "io", "measurements", "viz"},
     "capture": {"body", "camera", "image", "io", "viz"},
-    "track": {"body", "camera", "fit", "image", "solver"},
+    "track": {"body", "camera", "fit", "image", "solver", "viz"},
     "config": {"fit", "image", "parts", "solver"},
     "pipeline": {
         "body",

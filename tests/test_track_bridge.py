@@ -124,6 +124,26 @@ def test_a_second_silhouette_the_prediction_misses_is_taken_where_it_fits_better
     assert err.mean() < 0.5 * err_alone.mean(), (err, err_alone)
 
 
+def test_legs_spread_off_the_stumps_are_brought_back_by_the_solve_to_the_second(model, camera):
+    """Every frame lost its legs, and the tracking starts with both legs spread far to the sides
+    (as a start solved to the stumps can leave them): neither the prediction nor a solve from
+    it reaches the legs the second silhouette shows, the solve from the legs at their neutral
+    angles does, and the legs are tracked from the first frame on."""
+    xs, whole, _ = _sequence(model, camera)
+    first = whole & ~_silhouettes(model, camera, xs)[1]
+    start = xs[:1].clone()
+    for name in ("l_hip_abduct", "r_hip_abduct"):
+        start[0, 6 + model.dof_index(name)] = 0.9
+    scales = torch.ones(1, model.num_segments, 3, dtype=torch.float64)
+    frames = _frames(camera, first, [whole[k] for k in range(FRAMES)], OPTS)
+    assert expected(model, scales, camera, start, frames[0]) == [False]
+    recs = track(model, scales, camera, iter(frames), start, OPTS)[0]
+    err = _leg_error_mm(model, torch.stack([r.x for r in recs]), xs)
+    print("knees and ankles, mm:", err)
+    assert all(r.bridged for r in recs), [r.bridged for r in recs]
+    assert err.max() < 40, err
+
+
 def test_a_second_silhouette_that_adds_a_shadow_beside_the_body_is_not_taken(model, camera):
     """A second silhouette that adds a patch beside the feet (a floor shadow between them and
     a part cut off below) is not where the body is expected, nor does a solve to it fit

@@ -145,10 +145,11 @@ class TrackOptions:
             between the body above them and a part of the person cut off below them, at least
             this fraction of the silhouette's area, is segmented a second time with them given
             back (``segmentation.shadow_bridge``); the tracker takes that silhouette where
-            most of what it adds lies on the body as the predicted pose draws it
-            (:class:`torchfit.track.tracker.FrameSilhouettes`). Light trousers before a light
-            wall are an attenuated copy of it, and the first silhouette ends at the hips; a
-            shadow on the floor between the feet is bridged too, and stays out (0: off).
+            most of what it adds lies on the body as the predicted pose draws it, or where a
+            solve to it fits better (:mod:`torchfit.track.silhouettes`). Light trousers before
+            a light wall are an attenuated copy of it, and the first silhouette ends at the
+            hips; a shadow on the floor between the feet is bridged too, and stays out (0:
+            off).
     """
 
     iterations: int = 1

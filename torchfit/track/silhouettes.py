@@ -6,9 +6,11 @@ segments such a frame a second time with the pixels between the body and the par
 below given back (:meth:`torchfit.pipeline.sequence.SequenceSegmenter.segmented`,
 ``track.bridge_min``). A shadow on the floor between the feet is given back the same way, so
 the tracker decides per row (:func:`torchfit.track.track`): the second silhouette where the
-predicted pose draws the body over what it adds (:func:`expected`), else where a solve to it
-explains it better than the solve to the first (the body model tells which one is a person;
-in a stretch of refused frames that solve is tried every :data:`SECOND_TRIAL_EVERY`-th).
+predicted pose draws the body over what it adds (:func:`expected`), else where a solve to it,
+from the predicted pose or from it with the legs at their neutral angles (a leg hidden behind
+the other), explains it better than the solve to the first (the body model tells which one is
+a person; in a stretch of refused frames those solves are tried every
+:data:`SECOND_TRIAL_EVERY`-th).
 """
 
 from __future__ import annotations

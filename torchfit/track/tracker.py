@@ -28,6 +28,12 @@ reference pixels (``reference_px_per_m``), the records' ``contour_rms`` in the i
 single camera cannot tell some poses apart (an arm in front of or behind the body), and the
 contour RMS cannot either; the confidence says how well the silhouette is explained, not
 which of those poses is right.
+
+Second silhouettes: a frame handed over as a :class:`FrameSilhouettes` (light legs the shadow
+test lost, given back by the bridge) is solved to a row's second silhouette where the
+predicted pose draws the body over what it adds, or else where a solve to it, from the
+prediction or from it with the legs at their neutral angles, explains it better
+(:mod:`torchfit.track.silhouettes`); the row's record is then ``bridged``.
 """
 
 from __future__ import annotations
@@ -82,6 +88,10 @@ def _predict(
         turn = torch.sign(rate) * (rate.abs() - math.radians(options.turn_dead_deg)).clamp_min(0)
         pred[:, 3:6] = turn_about_vertical(prev[:, 3:6], options.turn_velocity * turn)
     return pred
+
+
+#: the leg joints a solve to a second silhouette also starts from at their neutral angles
+_LEG_DOFS = ("hip_flexion", "hip_abduct", "knee_flexion", "ankle_flexion")
 
 
 def _keep_better(res, ref: torch.Tensor, rows: torch.Tensor, other) -> list[int]:
@@ -168,6 +178,7 @@ def track(
     # the shoulders' sideways raise in a pose row (a template without them: no such re-solve)
     names = model.dof_names
     abduct = [6 + names.index(n) for n in ("l_shoulder_abduct", "r_shoulder_abduct") if n in names]
+    legs = [6 + k for k, n in enumerate(names) if n.split("_", 1)[-1] in _LEG_DOFS]
     for f, mask in enumerate(it):
         t0 = time.perf_counter()
         second = mask if isinstance(mask, FrameSilhouettes) else None
@@ -199,6 +210,16 @@ def track(
                     model, scales[idx], other, layout, pred[idx], pred[idx], options, sampler
                 )
                 took = _keep_better(res, res.reference_rms, idx, alt)
+                if legs:
+                    # a leg the prediction hides behind the other, or folds into the stumps the
+                    # first silhouette kept, is not where the second one shows it: the legs at
+                    # their neutral angles, pulled there
+                    straight = pred[idx].clone()
+                    straight[:, legs] = 0.0
+                    alt = solve_frame(
+                        model, scales[idx], other, layout, straight, straight, recovery, sampler
+                    )
+                    took = sorted(set(took) | set(_keep_better(res, res.reference_rms, idx, alt)))
                 if took:
                     for i in took:
                         bridged[i], refused[i] = True, 0
