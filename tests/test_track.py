@@ -214,22 +214,30 @@ def _three_frames(model, camera, dof: str, first: float, step: float):
     return xs, _masks(model, camera[[0] * 3], xs).numpy()
 
 
+def _empty_sequence(folder, camera, background: np.ndarray):
+    """A sequence folder with ``camera.yaml``, five copies of the BGR image ``background`` as
+    its empty scene, and an empty ``frames/``."""
+    import cv2
+
+    from torchfit.io.camera import save_camera
+
+    (folder / "background").mkdir(parents=True)
+    (folder / "frames").mkdir()
+    save_camera(camera, folder / "camera.yaml")
+    for i in range(5):
+        cv2.imwrite(str(folder / "background" / f"bg{i:02d}.png"), background)
+    return folder
+
+
 def _write_sequence(model, camera, tmp_path, video: bool = False):
     """A three-frame sequence folder (the model's own silhouettes on a flat background), and
     the same frames as a lossless video when ``video`` (None if OpenCV cannot write one)."""
     import cv2
 
-    from torchfit.io.camera import save_camera
-
     _, masks = _three_frames(model, camera, "l_shoulder_abduct", 0.3, 0.1)
-    folder = tmp_path / "seq"
-    (folder / "background").mkdir(parents=True)
-    (folder / "frames").mkdir()
-    save_camera(camera, folder / "camera.yaml")
     rng = np.random.default_rng(0)
     bg = (60 + rng.integers(0, 3, (SIZE[1], SIZE[0], 3))).astype(np.uint8)
-    for i in range(5):
-        cv2.imwrite(str(folder / "background" / f"bg{i:02d}.png"), bg)
+    folder = _empty_sequence(tmp_path / "seq", camera, bg)
     path = tmp_path / "clip.avi"
     fourcc = cv2.VideoWriter_fourcc(*"FFV1")
     writer = cv2.VideoWriter(str(path), fourcc, 25, SIZE) if video else None

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import test_track
 import torch
-from test_track import SIZE, _pose
+from test_track import SIZE, _empty_sequence, _pose
 
 from torchfit.camera import project_points
 from torchfit.errors import ConfigError
@@ -176,7 +176,6 @@ def _light_legs_sequence(model, tmp_path):
     thigh and calf pixels."""
     import cv2
 
-    from torchfit.io.camera import save_camera
     from torchfit.viz.preview import nominal_view
 
     size = (400, 480)
@@ -197,14 +196,9 @@ def _light_legs_sequence(model, tmp_path):
     whole = render_silhouette(pix, faces, size) > 0
     legs, feet = part(LEGS), part(("hindfoot",))
     legs &= ~part(("pelvis", "l5", "t10", "hand", "forearm", "hindfoot"))
-    folder = tmp_path / "light_legs"
-    (folder / "background").mkdir(parents=True)
-    (folder / "frames").mkdir()
-    save_camera(cam, folder / "camera.yaml")
     rng = np.random.default_rng(0)
     wall = (170 + rng.integers(0, 6, (size[1], size[0], 3))).astype(np.uint8)
-    for i in range(5):
-        cv2.imwrite(str(folder / "background" / f"bg{i:02d}.png"), wall)
+    folder = _empty_sequence(tmp_path / "light_legs", cam, wall)
     coloured = wall.copy()
     coloured[whole] = (90, 150, 200)  # BGR
     coloured[legs] = (140, 60, 60)
