@@ -246,3 +246,31 @@ def test_a_frame_whose_light_legs_pass_for_a_shadow_is_segmented_a_second_time(m
 def test_a_bad_bridge_fraction_is_a_config_error(value):
     with pytest.raises(ConfigError, match="track.bridge_min"):
         TrackOptions(bridge_min=value)
+
+
+def test_a_tracked_sequence_says_which_frames_took_their_second_silhouette(model, tmp_path):
+    """``track_sequences`` on the light-trousers sequence: the second frame is tracked to its
+    second silhouette (the first frame's pose draws the legs it gives back), ``track.csv``'s
+    ``bridged`` column and the summary's ``bridged_frames`` say so, and its overlay draws that
+    silhouette; with ``bridge_min`` 0 no frame is."""
+    import csv
+
+    from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences
+
+    folder, _ = _light_legs_sequence(model, tmp_path)
+    scales = torch.ones(model.num_segments, 3, dtype=torch.float64)
+    got = {}
+    for bridge in (0.05, 0.0):
+        cfg = TrackConfig(track=TrackOptions(iterations=3, rounds=2, bridge_min=bridge))
+        out = tmp_path / f"out_{bridge}"
+        summary = track_sequences(
+            model, scales, [load_sequence(folder)], [out], cfg, ahead="none", overlays=True
+        )[0]
+        with open(out / "track.csv", newline="") as f:
+            rows = list(csv.DictReader(f))
+        got[bridge] = (summary["bridged_frames"], [r["bridged"] for r in rows])
+        overlays = sorted((out / "overlay").glob("*.png"))
+        got[bridge] += (overlays[1].read_bytes(),)
+    assert got[0.05][:2] == (1, ["0", "1"]), got[0.05][:2]
+    assert got[0.0][:2] == (0, ["0", "0"]), got[0.0][:2]
+    assert got[0.05][2] != got[0.0][2]  # another silhouette drawn

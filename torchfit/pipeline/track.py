@@ -294,6 +294,8 @@ def track_sequences(
             },
             "ms_per_frame": float(np.mean([r.ms for r in recs])),
             "median_confidence": float(np.median([r.confidence for r in recs])),
+            # frames tracked to their second silhouette (light legs given back)
+            "bridged_frames": sum(r.bridged for r in recs),
         }
         if s.truth is not None:
             summary.update(joint_errors(frames_doc, s.truth[: len(recs)], s.camera))
