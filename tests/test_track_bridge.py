@@ -155,7 +155,7 @@ def test_a_second_silhouette_that_adds_a_shadow_beside_the_body_is_not_taken(mod
         ys, us = torch.nonzero(whole[k], as_tuple=True)
         feet = us[ys > ys.max() - 20]
         patch = whole[k].clone()
-        v0, u0 = int(ys.max()) - 12, int(feet.max()) + 8  # beside the feet
+        v0, u0 = int(ys.max()) - 12, int(feet.max()) - 3  # joined to the feet, beside them
         patch[v0 : v0 + 10, u0 : u0 + 30] = True
         second.append(patch if k >= 2 else None)
     recs, err = _track(model, camera, xs, _frames(camera, whole, second, OPTS), OPTS)
@@ -274,3 +274,44 @@ def test_a_tracked_sequence_says_which_frames_took_their_second_silhouette(model
     assert got[0.05][:2] == (1, ["0", "1"]), got[0.05][:2]
     assert got[0.0][:2] == (0, ["0", "0"]), got[0.0][:2]
     assert got[0.05][2] != got[0.0][2]  # another silhouette drawn
+
+
+def test_rows_that_take_and_refuse_their_second_silhouette_track_as_they_do_alone(model, camera):
+    """Two sequences together, one taking its second silhouettes (lost legs given back), the
+    other refusing them (a patch beside the feet): each row is tracked as it is alone, its
+    person data taken row by row from the two silhouettes' (made ahead, as the reader does)."""
+    xs, whole, first = _sequence(model, camera)
+    patched = []
+    for k in range(FRAMES):
+        ys, us = torch.nonzero(whole[k], as_tuple=True)
+        feet = us[ys > ys.max() - 20]
+        patch = whole[k].clone()
+        patch[
+            int(ys.max()) - 12 : int(ys.max()) - 2, int(feet.max()) - 3 : int(feet.max()) + 27
+        ] = 1
+        patched.append(patch)
+    cams = camera[[0, 0]]
+    frames = []
+    for k in range(FRAMES):
+        masks = torch.stack([first[k], whole[k]])
+        second = torch.stack([whole[k], patched[k]])
+        person = frame_data(masks, cams, OPTS, torch.float64)
+        has = torch.tensor([k >= 2, k >= 2])
+        ahead = frame_data(second, cams, OPTS, torch.float64)
+        frames.append(FrameSilhouettes(person, masks, second, has, ahead))
+    scales = torch.ones(2, model.num_segments, 3, dtype=torch.float64)
+    both = track(model, scales, cams, iter(frames), xs[[0, 0]], OPTS)
+    alone = [
+        _track(
+            model, camera, xs, _frames(camera, first, [None, None] + list(whole[2:]), OPTS), OPTS
+        )[0],
+        _track(model, camera, xs, _frames(camera, whole, [None, None] + patched[2:], OPTS), OPTS)[
+            0
+        ],
+    ]
+    for row in range(2):
+        assert [r.bridged for r in both[row]] == [r.bridged for r in alone[row]]
+        for a, b in zip(both[row], alone[row], strict=True):
+            torch.testing.assert_close(a.x, b.x, atol=1e-6, rtol=0)
+    assert [r.bridged for r in both[0]][2:] == [True] * (FRAMES - 2)
+    assert not any(r.bridged for r in both[1])

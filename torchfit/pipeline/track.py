@@ -140,7 +140,8 @@ def _frames(seqs, segmenters, cameras, config: TrackConfig, dtype, keep: bool = 
             second = torch.stack(
                 [m if s is None else s for m, s in zip(masks, seconds, strict=True)]
             )
-            person = FrameSilhouettes(person, masks, second, has)
+            extra = frame_data(second, cameras, config.track, dtype)  # made here, ahead
+            person = FrameSilhouettes(person, masks, second, has, extra)
             if keep and f > 0:
                 kept = (kept, [None if s is None else pack_mask(s.numpy()) for s in seconds])
         yield kept, person

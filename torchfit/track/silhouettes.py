@@ -38,6 +38,10 @@ __all__ = [
 #: it adds lie on the pose's silhouette grown by :data:`SECOND_MARGIN_PX`
 SECOND_INSIDE = 0.5
 SECOND_MARGIN_PX = 3
+#: a solve to a second silhouette is taken where its contour RMS is below this many times the
+#: first's (not on a tie: a second silhouette whose additions the contour never reaches, a
+#: blob apart from the body, explains the frame as well to the last digits)
+SECOND_BETTER = 0.99
 #: in a stretch of frames whose second silhouette was refused, the solve to it is made every
 #: this many frames (a frame of the stretch looks like the one before; each solve costs a
 #: frame's tracking time)
@@ -53,25 +57,55 @@ class FrameSilhouettes:
         masks: (B, H, W) the first silhouettes.
         second: (B, H, W) the second ones (a row without one holds its first).
         has: (B,) bool, the rows with a second silhouette.
+        second_person: the :func:`torchfit.track.frame_data` of ``second``, where the caller
+            made it ahead (the reader does); None: made here when a row takes it.
     """
 
     person: PersonData
     masks: torch.Tensor
     second: torch.Tensor
     has: torch.Tensor
+    second_person: PersonData | None = None
+
+    def second_data(self, cameras: Camera, options: TrackOptions, dtype: torch.dtype) -> PersonData:
+        """The person data of the second silhouettes (made once)."""
+        from torchfit.track.tracker import frame_data
+
+        if self.second_person is None:
+            self.second_person = frame_data(self.second, cameras, options, dtype)
+        return self.second_person
 
     def chosen(
         self, rows: list[bool], cameras: Camera, options: TrackOptions, dtype: torch.dtype
     ) -> PersonData:
-        """The person data with the second silhouette in the rows ``rows`` (B,)."""
-        from torchfit.track.tracker import frame_data
-
+        """The person data with the second silhouette in the rows ``rows`` (B,): a row's
+        data do not depend on the other rows' (its distance map is its own, the contours'
+        padding counts nowhere), so they are taken row by row from the two."""
         if not any(rows):
             return self.person
-        masks = self.masks.clone()
-        pick = torch.tensor(rows)
-        masks[pick] = self.second[pick]
-        return frame_data(masks, cameras, options, dtype)
+        second = self.second_data(cameras, options, dtype)
+        if all(r or not bool(h) for r, h in zip(rows, self.has, strict=True)):
+            return second  # a row without a second silhouette has the same data in both
+        return _rows_of(self.person, second, torch.tensor(rows))
+
+
+def _rows_of(first: PersonData, second: PersonData, take: torch.Tensor) -> PersonData:
+    """Person data (one posture) with the rows ``take`` (B,) bool from ``second``, the others
+    from ``first`` (contours padded to the wider of the two)."""
+    width = max(first.contours[0].shape[1], second.contours[0].shape[1])
+
+    def wide(t: torch.Tensor) -> torch.Tensor:
+        pad = [0, 0] * (t.dim() - 2) + [0, width - t.shape[1]]
+        return torch.nn.functional.pad(t, pad)
+
+    pick = take.to(first.contours[0].device)
+    rows = lambda a, b: torch.where(pick.view(-1, *[1] * (a.dim() - 1)), b, a)  # noqa: E731
+    return PersonData(
+        [rows(wide(first.contours[0]), wide(second.contours[0]))],
+        [rows(wide(first.valid[0]), wide(second.valid[0]))],
+        [rows(first.distance_maps[0], second.distance_maps[0])],
+        first.camera,
+    )
 
 
 def expected(

@@ -52,7 +52,12 @@ from torchfit.fit.model_contour import EdgeSampler
 from torchfit.fit.person import PersonData, person_data_from_masks
 from torchfit.track.frame import PoseLayout, TrackOptions, solve_frame
 from torchfit.track.options import LOST_CONFIDENCE
-from torchfit.track.silhouettes import SECOND_TRIAL_EVERY, FrameSilhouettes, expected
+from torchfit.track.silhouettes import (
+    SECOND_BETTER,
+    SECOND_TRIAL_EVERY,
+    FrameSilhouettes,
+    expected,
+)
 
 __all__ = ["FrameRecord", "FrameSilhouettes", "frame_data", "track"]
 
@@ -94,13 +99,13 @@ def _predict(
 _LEG_DOFS = ("hip_flexion", "hip_abduct", "knee_flexion", "ankle_flexion")
 
 
-def _keep_better(res, ref: torch.Tensor, rows: torch.Tensor, other) -> list[int]:
+def _keep_better(res, ref: torch.Tensor, rows: torch.Tensor, other, factor: float = 1.0):
     """Where ``other`` (a solve of the rows ``rows`` of ``res``) explains the silhouette
-    better, take its pose, contour RMS (``ref``) and cost; add its iterations either way.
-    Returns the rows that took it."""
+    better (its contour RMS below ``factor`` times ``ref``'s), take its pose, contour RMS
+    (``ref``) and cost; add its iterations either way. Returns the rows that took it."""
     took = []
     for k, i in enumerate(rows.tolist()):
-        if float(other.reference_rms[k]) < float(ref[i]):
+        if float(other.reference_rms[k]) < factor * float(ref[i]):
             res.x[i] = other.x[k]
             ref[i] = other.reference_rms[k]
             res.cost[i] = other.cost[k]
@@ -205,11 +210,11 @@ def track(
             rest = [i for i in rest if (refused[i] - 1) % SECOND_TRIAL_EVERY == 0]
             if rest:
                 idx = torch.tensor(rest)
-                other = frame_data(second.second[idx], cameras[idx], options, model.dtype)
+                other = second.second_data(cameras, options, model.dtype).subset(idx)
                 alt = solve_frame(
                     model, scales[idx], other, layout, pred[idx], pred[idx], options, sampler
                 )
-                took = _keep_better(res, res.reference_rms, idx, alt)
+                took = _keep_better(res, res.reference_rms, idx, alt, SECOND_BETTER)
                 if legs:
                     # a leg the prediction hides behind the other, or folds into the stumps the
                     # first silhouette kept, is not where the second one shows it: the legs at
@@ -219,7 +224,8 @@ def track(
                     alt = solve_frame(
                         model, scales[idx], other, layout, straight, straight, recovery, sampler
                     )
-                    took = sorted(set(took) | set(_keep_better(res, res.reference_rms, idx, alt)))
+                    again = _keep_better(res, res.reference_rms, idx, alt, SECOND_BETTER)
+                    took = sorted(set(took) | set(again))
                 if took:
                     for i in took:
                         bridged[i], refused[i] = True, 0
