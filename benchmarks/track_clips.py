@@ -145,9 +145,13 @@ def track(sequence: Path, model: Path, out: Path, sets: list[str], threads: int)
 
 def summarise(results: dict[str, dict]) -> tuple[str, list[list[str]]]:
     """A markdown table and CSV rows of clip name -> ``eval.json``; with several clips, the
-    mean (and the statuses summed) and the median over them."""
+    mean (the statuses and the frames on a second silhouette summed) and the median."""
     header = ["clip", "joint error mm", "along the rays", "across", "ms per frame", *STATUSES]
-    counts = {n: [ev.get("status", {}).get(s, 0) for s in STATUSES] for n, ev in results.items()}
+    header.append("bridged")  # frames tracked to their second silhouette (light legs)
+    counts = {
+        n: [ev.get("status", {}).get(s, 0) for s in STATUSES] + [ev.get("bridged_frames", 0)]
+        for n, ev in results.items()
+    }
     rows = [
         [name, *(f"{ev[c]:.1f}" for c in COLUMNS), *map(str, counts[name])]
         for name, ev in results.items()
@@ -158,7 +162,7 @@ def summarise(results: dict[str, dict]) -> tuple[str, list[list[str]]]:
         rows.append(["mean", *(f"{statistics.fmean(values[c]):.1f}" for c in COLUMNS), *totals])
         rows.append(
             ["median", *(f"{statistics.median(values[c]):.1f}" for c in COLUMNS)]
-            + [""] * len(STATUSES)
+            + [""] * (len(STATUSES) + 1)
         )
     lines = [
         "| " + " | ".join(header) + " |",

@@ -28,6 +28,7 @@ def _eval(err: float, ok: int, uncertain: int) -> dict:
         "across_ray_mm": err * 0.4,
         "ms_per_frame": 100.0,
         "status": {"ok": ok, "uncertain": uncertain},
+        "bridged_frames": uncertain // 2,
     }
 
 
@@ -36,9 +37,9 @@ def test_the_table_has_each_clip_then_the_mean_and_median(tool):
         {"a": _eval(60.0, 38, 2), "b": _eval(90.0, 30, 10), "c": _eval(150.0, 40, 0)}
     )
     assert rows[0][:2] == ["clip", "joint error mm"]
-    assert rows[1] == ["a", "60.0", "48.0", "24.0", "100.0", "38", "0", "2"]
-    assert rows[4] == ["mean", "100.0", "80.0", "40.0", "100.0", "108", "0", "12"]
-    assert rows[5][:2] == ["median", "90.0"] and rows[5][5:] == ["", "", ""]
+    assert rows[1] == ["a", "60.0", "48.0", "24.0", "100.0", "38", "0", "2", "1"]
+    assert rows[4] == ["mean", "100.0", "80.0", "40.0", "100.0", "108", "0", "12", "6"]
+    assert rows[5][:2] == ["median", "90.0"] and rows[5][5:] == ["", "", "", ""]
     assert text.splitlines()[2].startswith("| a | 60.0 |") and len(text.splitlines()) == 7
     # one clip: no summary rows
     _, alone = tool.summarise({"a": _eval(60.0, 38, 2)})
