@@ -31,6 +31,7 @@ __all__ = [
     "expected",
     "SECOND_INSIDE",
     "SECOND_MARGIN_PX",
+    "SECOND_BETTER",
     "SECOND_TRIAL_EVERY",
 ]
 

@@ -152,7 +152,7 @@ def track(
         masks: per frame, (B, H, W) bool silhouettes (a sequence that has ended repeats its
             last mask; the caller drops those frames), their :func:`frame_data`, or a
             :class:`FrameSilhouettes` (a second silhouette for some rows, taken where the
-            predicted pose draws the body over what it adds).
+            predicted pose draws the body over what it adds or a solve to it fits better).
         x_start: (B, P) the pose rows of the frame before the first.
         options: tracker options.
         progress: wraps the frame iterator.
