@@ -144,20 +144,24 @@ def test_legs_spread_off_the_stumps_are_brought_back_by_the_solve_to_the_second(
     assert err.max() < 40, err
 
 
+def _with_patch(mask: torch.Tensor) -> torch.Tensor:
+    """The silhouette with a 10 x 30 px patch joined to the feet, beside them (a floor shadow
+    between the feet and a part cut off below, as the bridge gives it back)."""
+    ys, us = torch.nonzero(mask, as_tuple=True)
+    feet = us[ys > ys.max() - 20]
+    out = mask.clone()
+    v0, u0 = int(ys.max()) - 12, int(feet.max()) - 3
+    out[v0 : v0 + 10, u0 : u0 + 30] = True
+    return out
+
+
 def test_a_second_silhouette_that_adds_a_shadow_beside_the_body_is_not_taken(model, camera):
     """A second silhouette that adds a patch beside the feet (a floor shadow between them and
     a part cut off below) is not where the body is expected, nor does a solve to it fit
     better: the frames are tracked to their first silhouettes, exactly as without a second
     one."""
     xs, whole, _ = _sequence(model, camera)
-    second = []
-    for k in range(FRAMES):
-        ys, us = torch.nonzero(whole[k], as_tuple=True)
-        feet = us[ys > ys.max() - 20]
-        patch = whole[k].clone()
-        v0, u0 = int(ys.max()) - 12, int(feet.max()) - 3  # joined to the feet, beside them
-        patch[v0 : v0 + 10, u0 : u0 + 30] = True
-        second.append(patch if k >= 2 else None)
+    second = [_with_patch(whole[k]) if k >= 2 else None for k in range(FRAMES)]
     recs, err = _track(model, camera, xs, _frames(camera, whole, second, OPTS), OPTS)
     plain, same = _track(model, camera, xs, _frames(camera, whole, [None] * FRAMES, OPTS), OPTS)
     assert not any(r.bridged for r in recs)
@@ -281,15 +285,7 @@ def test_rows_that_take_and_refuse_their_second_silhouette_track_as_they_do_alon
     other refusing them (a patch beside the feet): each row is tracked as it is alone, its
     person data taken row by row from the two silhouettes' (made ahead, as the reader does)."""
     xs, whole, first = _sequence(model, camera)
-    patched = []
-    for k in range(FRAMES):
-        ys, us = torch.nonzero(whole[k], as_tuple=True)
-        feet = us[ys > ys.max() - 20]
-        patch = whole[k].clone()
-        patch[
-            int(ys.max()) - 12 : int(ys.max()) - 2, int(feet.max()) - 3 : int(feet.max()) + 27
-        ] = 1
-        patched.append(patch)
+    patched = [_with_patch(whole[k]) for k in range(FRAMES)]
     cams = camera[[0, 0]]
     frames = []
     for k in range(FRAMES):
