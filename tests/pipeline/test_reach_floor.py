@@ -63,6 +63,7 @@ def test_a_silhouette_cut_off_at_the_knees_is_flagged_and_on_request_segmented_a
     got, _, notes, flags = reach_floor(image, model, masks, shadow, camera, _options())
     assert torch.equal(got, masks) and notes == []
     assert len(flags) == 1 and flags[0].startswith("pose1: the silhouette does not reach the floor")
+    assert flags[0].endswith("(segmentation.floor_retry: true segments such a posture once more)")
     # with floor_retry: segmented again, kept, no flag
     retry = _options(floor_retry=True)
     got, got_shadow, notes, flags = reach_floor(image, model, masks, shadow, camera, retry)
@@ -73,6 +74,7 @@ def test_a_silhouette_cut_off_at_the_knees_is_flagged_and_on_request_segmented_a
     # nothing to segment again without the background model (own masks, chroma key)
     no_model = reach_floor(image, None, masks, shadow, camera, retry)
     assert no_model[2] == [] and no_model[3][0].startswith("pose1: the silhouette does not reach")
+    assert "floor_retry" not in no_model[3][0]  # nothing it could do there
     # not checked at all
     off = _options(floor_reach_m=None, floor_retry=True)
     assert reach_floor(image, model, masks, shadow, camera, off)[2:] == ([], [])

@@ -275,10 +275,19 @@ def reach_floor(
                 )
                 log.info(notes[-1])
                 reach[j] = again_reach[k]
+    # where the retry was possible but not asked for, the flag says how to ask
+    hint = (
+        " (segmentation.floor_retry: true segments such a posture once more)"
+        if model is not None
+        and segmentation.shadow_test
+        and not retry
+        and not segmentation.shadow_bridge
+        else ""
+    )
     flags = [
         f"pose{j + 1}: the silhouette does not reach the floor (its lowest pixel sees it "
         f"{reach[j]:.2f} m from the mark): the segmentation lost the lower legs, check the "
-        "overlays"
+        f"overlays{hint}"
         for j in range(len(reach))
         if not reach[j] <= limit
     ]
