@@ -55,6 +55,7 @@ from torchfit.image.segment import (
     SegmentationResult,
     cast_shadow,
     clean_mask,
+    finish_silhouettes,
     segment,
 )
 from torchfit.image.shadow import bridged, lower_band, shadow_mask
@@ -84,6 +85,7 @@ __all__ = [
     "SegmentationOptions",
     "SegmentationResult",
     "cast_shadow",
+    "finish_silhouettes",
     "clean_mask",
     "segment",
     "trace_outer_contour",

@@ -43,6 +43,7 @@ __all__ = [
     "SegmentationResult",
     "cast_shadow",
     "clean_mask",
+    "finish_silhouettes",
     "segment",
 ]
 
@@ -195,6 +196,8 @@ class SegmentationResult:
         gains: ``(B, 3)`` the per-channel gains undone before the tests (``photometric``),
             1 where none was (none estimated, or one the test would not notice); None
             without ``photometric``.
+        tested: ``(B, 3, H, W)`` the images as the tests saw them (the gains undone), which
+            :func:`finish_silhouettes` refines the outline against.
     """
 
     masks: torch.Tensor
@@ -202,6 +205,7 @@ class SegmentationResult:
     found: torch.Tensor
     shadow: torch.Tensor | None = None
     gains: torch.Tensor | None = None
+    tested: torch.Tensor | None = None
 
 
 def segment(
@@ -233,9 +237,28 @@ def segment(
     distance = mahalanobis_distance(background, images, compiled=options.compile)
     raw = distance > options.threshold
     removed = cast_shadow(background, images, raw, options)
-    raw = raw & ~removed
+    masks = finish_silhouettes(images, background, raw & ~removed, options)
+    return SegmentationResult(masks, distance, masks.flatten(1).any(1), removed, gains, images)
+
+
+def finish_silhouettes(
+    tested: torch.Tensor,
+    background: BackgroundModel,
+    foreground: torch.Tensor,
+    options: SegmentationOptions,
+) -> torch.Tensor:
+    """The chain after its tests: :func:`clean_mask` of the ``foreground`` (B, 1, H, W) the
+    tests left, then, with ``edge_width``, the outline's mixed pixels against the images as
+    the tests saw them (``tested``, :attr:`SegmentationResult.tested`). :func:`segment` ends
+    with it; a caller that gives back some of the pixels the tests removed (the shadow test's,
+    :func:`~torchfit.image.shadow.bridged`) finishes its own foreground without testing the
+    images again.
+
+    Returns:
+        (B, 1, H, W) bool silhouettes.
+    """
     masks = clean_mask(
-        raw,
+        foreground,
         options.open_kernel,
         options.close_kernel,
         options.fill_holes,
@@ -247,14 +270,14 @@ def segment(
         raise ConfigError(f"segmentation.edge_width: expected >= 0, got {options.edge_width}")
     if options.edge_width > 0:
         masks = refine_edges(
-            images,
+            tested,
             background,
             masks,
             options.edge_width,
             options.edge_separation,
             options.largest_region,
         )
-    return SegmentationResult(masks, distance, masks.flatten(1).any(1), removed, gains)
+    return masks
 
 
 def cast_shadow(

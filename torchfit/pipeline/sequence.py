@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -29,6 +29,7 @@ from torchfit.config.schema import SilhouetteSource
 from torchfit.errors import DataError
 from torchfit.image import fit_background, segment
 from torchfit.image.chroma import key_colour, screen_frame
+from torchfit.image.segment import SegmentationResult, finish_silhouettes
 from torchfit.image.shadow import bridged
 from torchfit.io.camera import load_camera
 from torchfit.io.dataset import resolve_method
@@ -169,11 +170,12 @@ class SequenceSegmenter:
         The second is made by background subtraction where the shadow test removed pixels
         that lie between the body above them and a part of the person cut off below them in
         their column (:func:`torchfit.image.shadow.bridged`), at least ``bridge_min`` of the
-        silhouette's area: the frame segmented again with those pixels given back
-        (``shadow_bridge``). Light trousers before a light wall are an attenuated copy of it,
-        and the first silhouette then ends at the hips; a shadow on the floor between the feet
-        is bridged too, so which one a frame is is for the tracker to tell (from where it
-        expects the body). 0 makes no second silhouette.
+        silhouette's area: the frame's silhouette made again with those pixels given back,
+        as ``shadow_bridge`` makes it (:func:`torchfit.image.finish_silhouettes`; the tests
+        are not run again). Light trousers before a light wall are an attenuated copy of it,
+        and the first silhouette then ends at the hips; a shadow on the floor between the
+        feet is bridged too, so which one a frame is is for the tracker to tell (from where
+        it expects the body). 0 makes no second silhouette.
         """
         seq = self.sequence
         if seq.method == "masks":
@@ -185,9 +187,9 @@ class SequenceSegmenter:
                 yield chroma_silhouettes(image, self.options, self.screen, self.key)[0, 0], None
                 continue
             result = segment(image, self.model, self.options)
-            yield result.masks[0, 0], self._bridged(image, result)
+            yield result.masks[0, 0], self._bridged(result)
 
-    def _bridged(self, image: torch.Tensor, result) -> torch.Tensor | None:
+    def _bridged(self, result: SegmentationResult) -> torch.Tensor | None:
         """The second silhouette of :meth:`segmented` (None where there is none)."""
         opts = self.options
         if not (self.bridge_min > 0 and opts.shadow_test) or opts.shadow_bridge:
@@ -196,8 +198,9 @@ class SequenceSegmenter:
         least = self.bridge_min * float(result.masks.sum())
         if float(removed.sum()) < least:  # what the bridge gives back is some of these
             return None
-        raw = result.distance > opts.threshold
-        gained = removed & bridged(raw & ~removed, opts.open_kernel)
+        kept = (result.distance > opts.threshold) & ~removed
+        gained = removed & bridged(kept, opts.open_kernel)
         if float(gained.sum()) < least:
             return None
-        return segment(image, self.model, replace(opts, shadow_bridge=True)).masks[0, 0]
+        # what segment() with shadow_bridge gives, without testing the image again
+        return finish_silhouettes(result.tested, self.model, kept | gained, opts)[0, 0]

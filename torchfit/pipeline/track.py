@@ -143,8 +143,16 @@ def _frames(seqs, segmenters, cameras, config: TrackConfig, dtype, keep: bool = 
             extra = frame_data(second, cameras, config.track, dtype)  # made here, ahead
             person = FrameSilhouettes(person, masks, second, has, extra)
             if keep and f > 0:
-                kept = (kept, [None if s is None else pack_mask(s.numpy()) for s in seconds])
+                kept = (kept, _pack_seconds(person))
         yield kept, person
+
+
+def _pack_seconds(frame: FrameSilhouettes) -> list[tuple | None]:
+    """Per row, its second silhouette packed as :func:`_pack` packs (None for a row without
+    one): what the overlays draw for a frame tracked to it."""
+    return [
+        pack_mask(m.numpy()) if h else None for m, h in zip(frame.second, frame.has, strict=True)
+    ]
 
 
 def _pack(masks: torch.Tensor) -> list[tuple]:
@@ -230,11 +238,7 @@ def track_sequences(
     if overlays:
         kept.append(_pack(first))
         if isinstance(first_person, FrameSilhouettes):
-            seconds = [
-                pack_mask(m.numpy()) if h else None
-                for m, h in zip(first_person.second, first_person.has, strict=True)
-            ]
-            kept[0] = (kept[0], seconds)
+            kept[0] = (kept[0], _pack_seconds(first_person))
 
     def frames_again():
         yield first_person

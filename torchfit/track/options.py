@@ -143,7 +143,7 @@ class TrackOptions:
             ``distance_margin_px`` is the image's. ``None``: everything in the image's pixels.
         bridge_min: with background subtraction, a frame whose shadow test removed pixels
             between the body above them and a part of the person cut off below them, at least
-            this fraction of the silhouette's area, is segmented a second time with them given
+            this fraction of the silhouette's area, gets a second silhouette with them given
             back (``segmentation.shadow_bridge``); the tracker takes that silhouette where
             most of what it adds lies on the body as the predicted pose draws it, or where a
             solve to it fits better (:mod:`torchfit.track.silhouettes`). Light trousers before
