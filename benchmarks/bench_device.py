@@ -16,9 +16,9 @@
    subject times B (an overestimate, since batching pays). ``--short N`` gives every stage
    of the config at most N iterations, to see how a batch scales in little time.
 4. ``--parts-batch``: the same fit once more with the parts timed (the device synchronised
-   around each): the contour choice (posing every vertex, then on the CPU: rasterising,
-   outline, k-d tree), the Jacobian with its residual, the trial residuals, the initial
-   guess, and the rest of the solver (normal equations, Cholesky, bookkeeping).
+   around each): the contour choice (posing every vertex, then on the CPU: drawing the
+   silhouette edges, outline, k-d tree), the Jacobian with its residual, the trial residuals,
+   the initial guess, and the rest of the solver (normal equations, Cholesky, bookkeeping).
 5. ``--profile-batch``: ``torch.profiler`` over a short fit (two iterations per stage): the
    operators that take the most device and host time.
 

@@ -66,8 +66,8 @@ class RunConfig:
         workers: fits at once. Ray: tasks in flight (default: the cluster's CPUs divided by
             ``num_threads``). Local: how many fit processes share this machine (default 1),
             which sets the default ``num_threads``.
-        contour_workers: processes of each fit that share its contour choice (rasterising
-            the model, its outline, the nearest samples: CPU work, image by image), one
+        contour_workers: processes of each fit that share its contour choice (drawing the
+            model's outline, the nearest samples: CPU work, image by image), one
             thread each; 0 chooses in the fit's own process. None: 0 on the CPU, and on a
             GPU the CPUs left beside the fit (its CPUs less one). The results are the same
             either way (:mod:`torchfit.fit.contour_pool`).

@@ -1,8 +1,8 @@
 """Worker processes for the contour choice.
 
-The contour choice (:func:`torchfit.fit.model_contour.select_contours`) rasterises every
-image's projected mesh, traces its outline and queries a k-d tree: CPU work, one image at a
-time, and on a GPU fit the larger part of the time. Its images are independent, so it can
+The contour choice (:func:`torchfit.fit.model_contour.select_contours`) draws every image's
+projected silhouette edges, traces their outline and queries a k-d tree: CPU work, one image
+at a time, and on a GPU fit the larger part of the time. Its images are independent, so it can
 spread them over processes. Each image is chosen by the same function in a worker as in this
 process, so the choice, and the fit, are the same bit for bit.
 

@@ -6,9 +6,10 @@ outside autograd each time the parameters change (:func:`select_contour`):
 1. every mesh edge carries ``K`` sample points at fixed fractions ``t_k = (k + 0.5) / K``;
 2. candidate edges are the projected silhouette edges: between a front- and a back-facing
    triangle, or on the border of a segment mesh;
-3. the projected mesh is rasterised (exact polygon fill) and the outer contour of the
-   silhouette traced; a candidate sample lies *on the model contour* when it is within
-   ``tolerance`` pixels of a contour pixel;
+3. the candidate edges are drawn as lines and the outer outline of the drawing traced (the
+   outer boundary of a projected mesh runs along its silhouette edges:
+   :func:`torchfit.viz.raster.edge_outline`); a candidate sample lies *on the model contour*
+   when it is within ``tolerance`` pixels of an outline pixel;
 4. for every person contour pixel the nearest selected sample is recorded.
 
 Given that choice (:func:`contour_endpoints` turns it into mesh edges and fractions), the
@@ -27,8 +28,7 @@ import torch
 from torchfit.errors import ShapeError, check_shape
 from torchfit.fit.contour_pool import map_chunks
 from torchfit.image.contours import on_image_frame
-from torchfit.image.morphology import pack_mask, unpack_mask
-from torchfit.viz.raster import outer_outlines, render_silhouette
+from torchfit.viz.raster import edge_outline, fixed_points, render_fixed
 
 __all__ = [
     "EdgeSampler",
@@ -129,9 +129,10 @@ class ContourSelection:
         sample_valid: (B, N) bool, False on padding.
         nearest: (B, C) for each person contour pixel, the position (into ``samples``' second
             dimension) of its nearest selected sample; 0 where invalid.
-        silhouettes: the B rendered model silhouettes, packed (a bounding box and its bits:
-            a full (H, W) mask per image is 415 KB at 720x576, gigabytes for a large batch);
-            :meth:`mask` unpacks one (for overlays and tests).
+        silhouettes: what draws the B model silhouettes: per image its projected vertices in
+            fixed point (:func:`torchfit.viz.raster.fixed_points`), the mesh's triangles and
+            the image size; :meth:`mask` renders one (for overlays, the bent joints' marks and
+            tests), the choice itself does not need them.
         marks: optional (B, L, 3) pixel targets ``(u, v, valid)`` of the posture's marked
             joints, made with the choice (:class:`torchfit.fit.bends.BendFit`).
     """
@@ -144,7 +145,7 @@ class ContourSelection:
 
     def mask(self, i: int) -> np.ndarray:
         """The (H, W) uint8 silhouette of image ``i``: 255 inside, 0 outside."""
-        return unpack_mask(self.silhouettes[i])
+        return render_fixed(*self.silhouettes[i])
 
     def repeat_interleave(self, repeats: int) -> ContourSelection:
         """The same choice for every row of a batch folded ``repeats`` times (row b*r + i)."""
@@ -280,26 +281,28 @@ def select_contours(
     chosen = map_chunks(_choose, items, (sampler, image_size, tolerance))
     out, at = [], 0
     for px, contours in zip(pixels, person_contours, strict=True):
-        out.append(_selection(chosen[at : at + px.shape[0]], contours.shape[:2], px.device))
+        out.append(
+            _selection(
+                chosen[at : at + px.shape[0]], contours.shape[:2], px.device, sampler, image_size
+            )
+        )
         at += px.shape[0]
     return out
 
 
 def _choose(item: tuple, sampler: EdgeSampler, size: tuple[int, int], tolerance: float):
     """One image's choice: (its contour samples, the position of the one nearest to each
-    person contour pixel (0 where invalid or none), its rendered silhouette packed)."""
+    person contour pixel (0 where invalid or none), its projected vertices in fixed point)."""
     from scipy.spatial import cKDTree
 
     px, contour, valid = item
     w, h = size
-    mask = render_silhouette(px, sampler.faces.numpy(), (w, h))
-    outlines = outer_outlines(mask)
-    bpix = (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
-    # where the model leaves the picture, its rendered outline runs along the image frame:
-    # that run is the picture's edge, not the model's contour
+    cand = np.flatnonzero(sampler.silhouette_edges(px))
+    # the outline inside the picture, off its frame (where the frame cuts the model, the
+    # picture's edge is not the model's contour)
+    bpix = edge_outline(px, sampler.edges.numpy()[cand], sampler.faces.numpy(), (w, h))
     bpix = bpix[~on_image_frame(bpix, w, h)]
     # the samples of the candidate edges only
-    cand = np.flatnonzero(sampler.silhouette_edges(px))
     p = sampler.all_points(torch.from_numpy(px)[None], torch.from_numpy(cand))[0].numpy()
     on = sampler.sample_index(cand)
     inside = (p[:, 0] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < h - 0.5)
@@ -311,10 +314,12 @@ def _choose(item: tuple, sampler: EdgeSampler, size: tuple[int, int], tolerance:
     nearest = np.zeros(len(valid), np.int64)
     if len(on) and valid.any():
         nearest[valid] = cKDTree(p).query(contour[valid])[1]
-    return on, nearest, pack_mask(mask)
+    return on, nearest, fixed_points(px)
 
 
-def _selection(chosen: list, contour_shape, device: torch.device) -> ContourSelection:
+def _selection(
+    chosen: list, contour_shape, device: torch.device, sampler: EdgeSampler, size
+) -> ContourSelection:
     """The :class:`ContourSelection` of a batch's :func:`_choose` results."""
     b = len(chosen)
     n = max(1, max(len(on) for on, _, _ in chosen))
@@ -325,7 +330,8 @@ def _selection(chosen: list, contour_shape, device: torch.device) -> ContourSele
         samples[i, : len(on)] = torch.from_numpy(on)
         sample_valid[i, : len(on)] = True
         nearest[i] = torch.from_numpy(near)
-    silhouettes = [packed for _, _, packed in chosen]
+    faces = sampler.faces.numpy()
+    silhouettes = [(fixed, faces, tuple(size)) for _, _, fixed in chosen]
     return ContourSelection(
         samples.to(device), sample_valid.to(device), nearest.to(device), silhouettes
     )
