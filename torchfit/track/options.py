@@ -90,8 +90,8 @@ class TrackOptions:
             that grows staler each frame seldom fits in a long stretch and costs a second
             solve; tried now and then, it still brings the model back within
             ``recover_every`` frames of the silhouette being right again.
-        recover_arms_deg: a frame the re-solve from the last good frame leaves over its limit
-            is solved once more from its own pose with both arms raised sideways to this many
+        recover_arms_deg: a frame solved again from the last good frame is also solved (in
+            the same batch) from its own pose with both arms raised sideways to this many
             degrees (shoulder abduction), the best contour kept: an arm left inside the body's
             outline gets no pull from the silhouette's arm outside it (0: off).
         confidence_px: contour RMS at which the confidence is 0.5.

@@ -15,16 +15,17 @@ Recovery: a row whose contour RMS exceeds ``recover_factor`` times its sequence'
 median of good frames (and at least ``recover_min_px``; before any good frame,
 :data:`torchfit.track.options.LOST_CONFIDENCE` times ``confidence_px``) is solved again from
 its last good frame (or its start), pulled towards that frame (not the extrapolation) and
-with twice the iterations; the frame's status is ``recovered`` when that brings it back
-under the threshold, ``uncertain`` otherwise; after either the velocity is reset (the next
-frame starts from this pose, not an extrapolation of a bad one), so one bad frame does not
-throw the next ones. A frame that re-solve leaves over its limit is solved once more from its
-own pose with both arms raised sideways (``recover_arms_deg``): an arm the solve left inside
-the body's outline, beside or in front of the trunk, gets no pull from the silhouette's arm
-outside it (and the last good frame had it there too), while an arm raised where the
-person's is not is pulled back in by the model contour's own term; the best contour is
-kept. ``confidence = 1 / (1 + (rms / confidence_px)²)``. The RMS these read is in
-reference pixels (``reference_px_per_m``), the records' ``contour_rms`` in the image's. A
+with twice the iterations, and in the same batch from its own pose with both arms raised
+sideways (``recover_arms_deg``): an arm the solve left inside the body's outline, beside or in
+front of the trunk, gets no pull from the silhouette's arm outside it (and the last good frame
+had it there too), while an arm raised where the person's is not is pulled back in by the
+model contour's own term; the best contour is kept. The frame's status is ``recovered`` when
+that brings it back under the threshold, ``uncertain`` otherwise; after either the velocity is
+reset (the next frame starts from this pose, not an extrapolation of a bad one), so one bad
+frame does not throw the next ones. A frame's extra solves (these, and those to a second
+silhouette below) are rows of one batch: two rows cost little more than one.
+``confidence = 1 / (1 + (rms / confidence_px)²)``. The RMS these read is in reference pixels
+(``reference_px_per_m``), the records' ``contour_rms`` in the image's. A
 single camera cannot tell some poses apart (an arm in front of or behind the body), and the
 contour RMS cannot either; the confidence says how well the silhouette is explained, not
 which of those poses is right.
@@ -50,7 +51,7 @@ from torchfit.body.rotations import heading, turn_about_vertical
 from torchfit.camera import Camera
 from torchfit.fit.model_contour import EdgeSampler
 from torchfit.fit.person import PersonData, person_data_from_masks
-from torchfit.track.frame import PoseLayout, TrackOptions, solve_frame
+from torchfit.track.frame import FrameResult, PoseLayout, TrackOptions, solve_frame
 from torchfit.track.options import LOST_CONFIDENCE
 from torchfit.track.silhouettes import (
     SECOND_BETTER,
@@ -112,6 +113,28 @@ def _keep_better(res, ref: torch.Tensor, rows: torch.Tensor, other, factor: floa
             took.append(i)
         res.iterations[i] += other.iterations[k]
     return took
+
+
+def _solve_from(model, scales, person, layout, rows, starts, options, sampler) -> list:
+    """Solve the rows ``rows`` (n,) of a frame (``person`` holds their n rows) once from each
+    start in ``starts`` (each (n, P), pulled towards itself), all in one batch (a frame's
+    solve costs little more for more rows); one :class:`FrameResult` per start."""
+    n, k = len(rows), len(starts)
+    every = torch.arange(n).repeat(k)
+    x0 = torch.cat(starts)
+    res = solve_frame(
+        model, scales[rows][every], person.subset(every), layout, x0, x0, options, sampler
+    )
+    return [
+        FrameResult(
+            x=res.x[j * n : (j + 1) * n],
+            cost=res.cost[j * n : (j + 1) * n],
+            reference_rms=res.reference_rms[j * n : (j + 1) * n],
+            iterations=res.iterations[j * n : (j + 1) * n],
+            image_scale=res.image_scale[j * n : (j + 1) * n],
+        )
+        for j in range(k)
+    ]
 
 
 def _median(values: list[float]) -> float:
@@ -211,21 +234,19 @@ def track(
             if rest:
                 idx = torch.tensor(rest)
                 other = second.second_data(cameras, options, model.dtype).subset(idx)
-                alt = solve_frame(
-                    model, scales[idx], other, layout, pred[idx], pred[idx], options, sampler
-                )
-                took = _keep_better(res, res.reference_rms, idx, alt, SECOND_BETTER)
+                starts = [pred[idx]]
                 if legs:
                     # a leg the prediction hides behind the other, or folds into the stumps the
                     # first silhouette kept, is not where the second one shows it: the legs at
-                    # their neutral angles, pulled there
+                    # their neutral angles too, pulled there
                     straight = pred[idx].clone()
                     straight[:, legs] = 0.0
-                    alt = solve_frame(
-                        model, scales[idx], other, layout, straight, straight, recovery, sampler
-                    )
-                    again = _keep_better(res, res.reference_rms, idx, alt, SECOND_BETTER)
-                    took = sorted(set(took) | set(again))
+                    starts.append(straight)
+                took = []
+                alts = _solve_from(model, scales, other, layout, idx, starts, recovery, sampler)
+                for alt in alts:
+                    took += _keep_better(res, res.reference_rms, idx, alt, SECOND_BETTER)
+                took = sorted(set(took))
                 if took:
                     for i in took:
                         bridged[i], refused[i] = True, 0
@@ -245,32 +266,19 @@ def track(
             status[i] = "uncertain"  # unless solved again below, and then within its limit
         if bad:
             idx = torch.tensor(bad)
-            sub = person.subset(idx)
-            again = solve_frame(
-                model,
-                scales[idx],
-                sub,
-                layout,
-                good[idx],
-                good[idx],
-                recovery,
-                sampler,
-            )
-            _keep_better(res, ref, idx, again)
-            # an arm the solve left inside the body's outline gets no pull from the silhouette,
-            # nor does a start from the last good frame, which had it there too: the frame's
-            # own pose with both arms raised sideways (an arm raised where the person's is not
-            # is pulled back in by the model contour's own term)
-            still = [i for i in bad if float(ref[i]) > limit[i]]
-            if still and options.recover_arms_deg and abduct:
-                rows = torch.tensor(still)
-                raised = res.x[rows].clone()
+            # from the last good frame, pulled towards it; and from the frame's own pose with
+            # both arms raised sideways: an arm the solve left inside the body's outline gets
+            # no pull from the silhouette, nor does a start from the last good frame, which had
+            # it there too (an arm raised where the person's is not is pulled back in by the
+            # model contour's own term)
+            starts = [good[idx]]
+            if options.recover_arms_deg and abduct:
+                raised = res.x[idx].clone()
                 raised[:, abduct] = math.radians(options.recover_arms_deg)
-                alt = solve_frame(
-                    model, scales[rows], person.subset(rows), layout, raised, raised, recovery,
-                    sampler,
-                )  # fmt: skip
-                _keep_better(res, ref, rows, alt)
+                starts.append(raised)
+            sub = person.subset(idx)
+            for alt in _solve_from(model, scales, sub, layout, idx, starts, recovery, sampler):
+                _keep_better(res, ref, idx, alt)
             for i in bad:
                 status[i] = "recovered" if float(ref[i]) <= limit[i] else "uncertain"
         ms = 1000 * (time.perf_counter() - t0) / b
