@@ -341,6 +341,30 @@ def test_frames_read_ahead_in_a_thread_or_a_process_track_alike(model, camera, t
         track_sequences(model, scales, [load_sequence(folder)], [tmp_path / "x"], cfg, ahead="gpu")
 
 
+def test_sequences_read_by_several_processes_track_as_by_one(model, camera, tmp_path):
+    """Three sequences (one a frame shorter) read and segmented by one process, by two groups
+    of them in processes of their own beside the tracker, by three from a reader process and
+    by three (four asked) beside a reader thread: byte-identical joints for every sequence."""
+    import shutil
+
+    from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences
+
+    folder, _ = _write_sequence(model, camera, tmp_path)
+    short = tmp_path / "short"
+    shutil.copytree(folder, short)
+    (short / "frames" / "000002.png").unlink()
+    cfg = TrackConfig(track=TrackOptions(iterations=3, rounds=1))
+    scales = torch.ones(model.num_segments, 3, dtype=torch.float64)
+    joints = {}
+    for readers, ahead in ((1, "none"), (2, "none"), (3, "process"), (4, "thread")):
+        seqs = [load_sequence(f) for f in (folder, short, folder)]
+        outs = [tmp_path / f"r{readers}" / str(i) for i in range(3)]
+        track_sequences(model, scales, seqs, outs, cfg, ahead=ahead, readers=readers)
+        joints[readers] = [(o / "joints_world.json").read_bytes() for o in outs]
+    assert joints[1] == joints[2] == joints[3] == joints[4]
+    assert joints[1][0] == joints[1][2] and joints[1][0] != joints[1][1]  # the short one
+
+
 def test_overlays_are_frames_and_a_video_that_reads_back(model, camera, tmp_path, monkeypatch):
     """``overlays=True`` writes one PNG a frame and ``overlay.avi`` with the same frames
     (Motion JPEG: the same images up to the codec's loss), and no partial file is left. The
@@ -590,7 +614,7 @@ def test_a_solve_uses_its_own_options_weights(model, camera):
 def test_track_tool_threads(tmp_path, capsys):
     """tools/track.py leaves one core to the reader that reads and segments the next frames
     (torch takes one thread fewer than the cores, at least 1), and rejects --threads 0 with
-    exit code 2."""
+    exit code 2 (as --readers 0)."""
     from scripts import load_script
 
     from torchfit.pipeline.runtime import cpu_count
@@ -601,6 +625,10 @@ def test_track_tool_threads(tmp_path, capsys):
         tool.main([*base, "--model", str(tmp_path), "--threads", "0"])
     assert exc.value.code == 2
     assert "--threads must be >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        tool.main([*base, "--model", str(tmp_path), "--readers", "0"])
+    assert exc.value.code == 2
+    assert "--readers must be >= 1" in capsys.readouterr().err
     before = torch.get_num_threads()
     try:
         assert tool.main([*base, "--model", str(tmp_path / "no_fit")]) == 4  # no params.json

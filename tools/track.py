@@ -95,9 +95,19 @@ def main(argv: list[str] | None = None) -> int:
         "maps while one is tracked (default: a second process where there are two cores or "
         "more, else none)",
     )
+    parser.add_argument(
+        "--readers",
+        type=int,
+        default=None,
+        help="processes that read and segment the frames, each for a group of the sequences "
+        "(default: with several sequences, as many as the cores, at most one a sequence; "
+        "else 1). The tracks are the same for any number",
+    )
     args = parser.parse_args(argv)
     if args.threads is not None and args.threads < 1:
         parser.error(f"--threads must be >= 1, got {args.threads}")
+    if args.readers is not None and args.readers < 1:
+        parser.error(f"--readers must be >= 1, got {args.readers}")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     from torchfit.pipeline.runtime import cpu_count
 
@@ -159,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
                 progress=lambda it: tqdm(it, desc="frames", total=max(s.num_frames for s in seqs)),
                 overlays=args.overlays,
                 ahead=ahead,
+                readers=args.readers or (min(len(seqs), cpu_count()) if len(seqs) > 1 else 1),
             )
         wall, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
     except OutputError as exc:

@@ -123,7 +123,11 @@ def _serve(source, args, ready, threads: int, parent: int) -> None:
 
 
 def prefetch_process(
-    source: Callable[..., Iterable[T]], *args, depth: int = 2, threads: int = 1
+    source: Callable[..., Iterable[T]],
+    *args,
+    depth: int = 2,
+    threads: int = 1,
+    daemon: bool = True,
 ) -> Iterator[T]:
     """Yield the items of ``source(*args)``, computed in a separate process up to ``depth``
     items ahead of the consumer.
@@ -134,7 +138,8 @@ def prefetch_process(
     workers do), the process starts at once with the caller's memory; elsewhere ``source`` and
     ``args`` are pickled into a fresh interpreter (``spawn``, a few seconds), so ``source``
     must be a module-level function. The items come back pickled. The process runs
-    ``threads`` torch threads.
+    ``threads`` torch threads; it may start processes of its own only where it is not a
+    ``daemon`` (it is ended with the generator either way).
 
     An exception raised by ``source`` is raised here in place of the item it stopped, after
     the items before it; a process that dies without one raises :class:`RuntimeError`.
@@ -147,7 +152,7 @@ def prefetch_process(
     ctx = multiprocessing.get_context("fork" if sys.platform.startswith("linux") else "spawn")
     ready = ctx.Queue(maxsize=depth)
     work = (source, args, ready, threads, os.getpid())
-    proc = ctx.Process(target=_serve, args=work, name="torchfit-prefetch", daemon=True)
+    proc = ctx.Process(target=_serve, args=work, name="torchfit-prefetch", daemon=daemon)
     proc.start()
     try:
         while True:

@@ -112,27 +112,54 @@ def load_fitted(folder: str | Path) -> FittedModel:
     return FittedModel(template, scales, str(doc.get("status", "ok")), str(doc.get("message", "")))
 
 
-def _masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter]):
-    """Per frame, (B, H, W) silhouettes and the rows' second silhouettes (a list, None where a
-    row has none; :meth:`SequenceSegmenter.segmented`); a finished sequence repeats its last
-    frame."""
-    n = max(s.num_frames for s in seqs)
+def _row_masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter], n: int):
+    """For ``n`` frames, the rows' (silhouette, second silhouette or None) of these sequences
+    (:meth:`SequenceSegmenter.segmented`); a finished sequence repeats its last frame."""
     sources = [g.segmented() for g in segmenters]
     last: list[tuple | None] = [None] * len(seqs)
     for f in range(n):
         for i, s in enumerate(seqs):
             if f < s.num_frames:
                 last[i] = next(sources[i])
-        yield torch.stack([m for m, _ in last]), [second for _, second in last]
+        yield list(last)
 
 
-def _frames(seqs, segmenters, cameras, config: TrackConfig, dtype, keep: bool = False):
+def _masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter], readers: int = 1):
+    """Per frame, (B, H, W) silhouettes and the rows' second silhouettes (a list, None where a
+    row has none); a finished sequence repeats its last frame. With ``readers`` > 1 the
+    sequences are split into that many groups of rows, each read and segmented in a process
+    of its own (one torch thread each): a sequence's silhouettes do not depend on the others,
+    so they are the same either way."""
+    n = max(s.num_frames for s in seqs)
+    k = min(readers, len(seqs))
+    if k <= 1:
+        groups = [_row_masks(seqs, segmenters, n)]
+    else:
+        parts = [p.tolist() for p in np.array_split(np.arange(len(seqs)), k)]
+        groups = [
+            prefetch_process(
+                _row_masks, [seqs[i] for i in p], [segmenters[i] for i in p], n, threads=1
+            )
+            for p in parts
+        ]
+    try:
+        for rows in zip(*groups, strict=True):
+            flat = [r for g in rows for r in g]
+            yield torch.stack([m for m, _ in flat]), [second for _, second in flat]
+    finally:
+        for g in groups:
+            g.close()
+
+
+def _frames(
+    seqs, segmenters, cameras, config: TrackConfig, dtype, keep: bool = False, readers: int = 1
+):
     """Per frame, what the tracker fits: the person data (a :class:`FrameSilhouettes` where a
     row has a second silhouette), with the silhouettes (B, H, W) they were made from: the
     first frame's as they are (its start needs them); the others' packed (:func:`_pack`,
     with the rows' second ones) where ``keep`` (the overlays draw them), else None (they would
     be sent for nothing)."""
-    for f, (masks, seconds) in enumerate(_masks(seqs, segmenters)):
+    for f, (masks, seconds) in enumerate(_masks(seqs, segmenters, readers)):
         person = frame_data(masks, cameras, config.track, dtype)
         kept = masks if f == 0 else (_pack(masks) if keep else None)
         if any(s is not None for s in seconds):
@@ -181,6 +208,7 @@ def track_sequences(
     overlays: bool = False,
     ahead: str = "thread",
     start: torch.Tensor | None = None,
+    readers: int = 1,
 ) -> list[dict]:
     """Track ``sequences`` together and write each one's outputs to ``outs``.
 
@@ -201,6 +229,11 @@ def track_sequences(
         start: (B, P) pose rows (:class:`torchfit.track.PoseLayout`) the first frames are
             tracked from, where the caller knows them; None: solved from the first frames'
             silhouettes (:func:`torchfit.track.start_poses`).
+        readers: processes that read and segment the frames, each for a group of the
+            sequences (1: one, where ``ahead`` says); the contours and distance maps are made
+            where ``ahead`` says. Reading and segmenting a 720x576 frame takes about 30 ms,
+            tracking a row of many about 10: with many sequences one reader is the bound. The
+            tracks are the same for any number.
 
     Returns:
         Per sequence a summary (frames, statuses, ms per frame, errors with a truth).
@@ -220,9 +253,10 @@ def track_sequences(
         )
     # the next frames are read, segmented and turned into contours and distance maps while
     # this one is tracked
-    args = (sequences, segmenters, cameras, config, model.dtype, overlays)
+    args = (sequences, segmenters, cameras, config, model.dtype, overlays, readers)
     if ahead == "process":
-        ahead = prefetch_process(_frames, *args)
+        # a process that starts the readers' processes is not a daemon
+        ahead = prefetch_process(_frames, *args, daemon=min(readers, b) <= 1)
     elif ahead in ("thread", "none"):
         ahead = prefetch(_frames(*args), depth=2 if ahead == "thread" else 0)
     else:
