@@ -100,8 +100,8 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=None,
         help="processes that read and segment the frames, each for a group of the sequences "
-        "(default: with several sequences, as many as the cores, at most one a sequence; "
-        "else 1). The tracks are the same for any number",
+        "(default: with several sequences and --ahead process or thread, as many as the cores, "
+        "at most one a sequence; else 1). The tracks are the same for any number",
     )
     args = parser.parse_args(argv)
     if args.threads is not None and args.threads < 1:
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
                 progress=lambda it: tqdm(it, desc="frames", total=max(s.num_frames for s in seqs)),
                 overlays=args.overlays,
                 ahead=ahead,
-                readers=args.readers or (min(len(seqs), cpu_count()) if len(seqs) > 1 else 1),
+                readers=args.readers or (1 if ahead == "none" else min(len(seqs), cpu_count())),
             )
         wall, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
     except OutputError as exc:
