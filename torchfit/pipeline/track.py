@@ -126,16 +126,15 @@ def _row_masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter], n: int
 
 def _masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter], readers: int = 1):
     """Per frame, (B, H, W) silhouettes and the rows' second silhouettes (a list, None where a
-    row has none); a finished sequence repeats its last frame. With ``readers`` > 1 the
-    sequences are split into that many groups of rows, each read and segmented in a process
-    of its own (one torch thread each): a sequence's silhouettes do not depend on the others,
-    so they are the same either way."""
+    row has none); a finished sequence repeats its last frame. With ``readers`` > 1 (at most
+    one a sequence) the sequences are split into that many groups of rows, each read and
+    segmented in a process of its own (one torch thread each): a sequence's silhouettes do
+    not depend on the others, so they are the same either way."""
     n = max(s.num_frames for s in seqs)
-    k = min(readers, len(seqs))
-    if k <= 1:
+    if readers <= 1:
         groups = [_row_masks(seqs, segmenters, n)]
     else:
-        parts = [p.tolist() for p in np.array_split(np.arange(len(seqs)), k)]
+        parts = [p.tolist() for p in np.array_split(np.arange(len(seqs)), readers)]
         groups = [
             prefetch_process(
                 _row_masks, [seqs[i] for i in p], [segmenters[i] for i in p], n, threads=1
@@ -253,10 +252,11 @@ def track_sequences(
         )
     # the next frames are read, segmented and turned into contours and distance maps while
     # this one is tracked
+    readers = max(1, min(readers, b))  # at most one a sequence
     args = (sequences, segmenters, cameras, config, model.dtype, overlays, readers)
     if ahead == "process":
         # a process that starts the readers' processes is not a daemon
-        ahead = prefetch_process(_frames, *args, daemon=min(readers, b) <= 1)
+        ahead = prefetch_process(_frames, *args, daemon=readers == 1)
     elif ahead in ("thread", "none"):
         ahead = prefetch(_frames(*args), depth=2 if ahead == "thread" else 0)
     else:

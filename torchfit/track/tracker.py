@@ -42,7 +42,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import torch
 
@@ -125,15 +125,9 @@ def _solve_from(model, scales, person, layout, rows, starts, options, sampler) -
     res = solve_frame(
         model, scales[rows][every], person.subset(every), layout, x0, x0, options, sampler
     )
+    names = [f.name for f in fields(FrameResult)]
     return [
-        FrameResult(
-            x=res.x[j * n : (j + 1) * n],
-            cost=res.cost[j * n : (j + 1) * n],
-            reference_rms=res.reference_rms[j * n : (j + 1) * n],
-            iterations=res.iterations[j * n : (j + 1) * n],
-            image_scale=res.image_scale[j * n : (j + 1) * n],
-        )
-        for j in range(k)
+        FrameResult(*(getattr(res, name)[j * n : (j + 1) * n] for name in names)) for j in range(k)
     ]
 
 
