@@ -151,6 +151,27 @@ def test_closing_early_ends_the_process(tmp_path):
         next(prefetch_process(_squares, 3, depth=0))
 
 
+def _mark(path: str):
+    with open(path, "w") as f:
+        f.write("started")
+    yield 1
+
+
+def test_each_process_starts_when_made_not_when_first_asked(tmp_path):
+    """Several readers made one after the other work side by side from the start (each
+    sequence's background model is made there before its first frame)."""
+    flags = [tmp_path / f"{k}.txt" for k in range(2)]
+    items = [prefetch_process(_mark, str(f)) for f in flags]
+    deadline = time.time() + 30
+    while not all(f.exists() for f in flags) and time.time() < deadline:
+        time.sleep(0.05)
+    assert all(f.exists() for f in flags)  # before any item was asked for
+    assert [list(i) for i in items] == [[1], [1]]
+    never = prefetch_process(_endless, str(tmp_path / "never.txt"), depth=1)
+    never.close()  # closed before its first item: the process ends all the same
+    assert multiprocessing.active_children() == []
+
+
 def test_the_process_exits_when_its_consumer_is_killed(tmp_path):
     """A consumer killed outright (no chance to close the generator) leaves no worker behind:
     the worker, blocked on a full queue with items larger than the pipe holds, sees its

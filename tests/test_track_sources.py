@@ -13,7 +13,7 @@ import test_track
 import torch
 from test_track import SIZE, _three_frames, _write_sequence
 
-from torchfit.errors import ConfigError, DataError
+from torchfit.errors import ConfigError, DataError, SegmentationError
 from torchfit.image import fit_background, segment
 from torchfit.io.camera import save_camera
 from torchfit.io.images import list_images, load_frames
@@ -222,3 +222,24 @@ def test_track_tool_exit_codes_for_masks_and_a_chroma_key(model, camera, tmp_pat
         assert "segmentation.chroma_key.key is not set" in capsys.readouterr().err
     finally:
         torch.set_num_threads(before)
+
+
+def test_the_background_model_is_made_where_the_frames_are_read(model, camera, tmp_path):
+    """Background subtraction's model is made on the first frame (in the reader process that
+    segments the sequence, beside the other readers), the same model as made at once; too few
+    background frames still fail when the segmenter is made, naming the sequence."""
+    folder, _, _ = _write_green_sequence(model, camera, tmp_path)
+    cfg = _config(method="background")
+    seq = load_sequence(folder, method="background")
+    segmenter = SequenceSegmenter(seq, cfg.segmentation)
+    assert segmenter.model is None
+    first = next(segmenter.silhouettes())
+    assert segmenter.model is not None
+    empty = load_frames(seq.background, seq.camera.image_size)[0]
+    made = fit_background(empty, cfg.segmentation)
+    assert torch.equal(segmenter.model.mean, made.mean)
+    image = load_frames(seq.frames[:1], seq.camera.image_size)[0]
+    assert torch.equal(first, segment(image, made, cfg.segmentation).masks[0, 0])
+    strict = _config(method="background", min_background_frames=6).segmentation
+    with pytest.raises(SegmentationError, match="green: 5 background frames, expected at least 6"):
+        SequenceSegmenter(seq, strict)

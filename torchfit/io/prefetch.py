@@ -130,7 +130,8 @@ def prefetch_process(
     daemon: bool = True,
 ) -> Iterator[T]:
     """Yield the items of ``source(*args)``, computed in a separate process up to ``depth``
-    items ahead of the consumer.
+    items ahead of the consumer. The process starts when this is called (several of them,
+    made one after the other, work side by side from the start).
 
     A thread (:func:`prefetch`) shares the interpreter lock with the consumer, so work made of
     many small tensor operations hardly overlaps with a consumer that is made of them too; a
@@ -153,8 +154,17 @@ def prefetch_process(
     ready = ctx.Queue(maxsize=depth)
     work = (source, args, ready, threads, os.getpid())
     proc = ctx.Process(target=_serve, args=work, name="torchfit-prefetch", daemon=daemon)
+    items = _received(proc, ready)
+    next(items)  # the process starts now, not at the first item asked for
+    return items
+
+
+def _received(proc, ready) -> Iterator:
+    """The consumer side of :func:`prefetch_process`: starts ``proc`` and yields None, then
+    the items it puts on ``ready``; closing it ends the process."""
     proc.start()
     try:
+        yield None
         while True:
             try:
                 kind, item = ready.get(timeout=_POLL_S)

@@ -26,7 +26,7 @@ import torch
 
 from torchfit.camera import Camera
 from torchfit.config.schema import SilhouetteSource
-from torchfit.errors import DataError
+from torchfit.errors import DataError, SegmentationError
 from torchfit.image import fit_background, segment
 from torchfit.image.chroma import key_colour, screen_frame
 from torchfit.image.segment import SegmentationResult, finish_silhouettes
@@ -133,14 +133,16 @@ def load_sequence(
 
 
 class SequenceSegmenter:
-    """One sequence's frames to silhouettes, by its ``method``: the background model or the key
-    colour and empty screen are made once here (from ``background/``, read only for those),
-    then :meth:`silhouettes` gives the frames' (H, W) bool silhouettes in order. It is sent to
-    the frame reader's process as it is.
+    """One sequence's frames to silhouettes, by its ``method``: the key colour and empty screen
+    are made once here, the background model once on the first frame (:meth:`prepare`: where
+    the frames are read, so that the reader processes of many sequences make theirs side by
+    side), both from ``background/``, read only for those; then :meth:`silhouettes` gives the
+    frames' (H, W) bool silhouettes in order. It is sent to the frame reader's process as it is.
 
     Raises (on creation):
         ConfigError: a chroma key with no key colour and no background frames;
-        SegmentationError: no screen in a chroma key's background frames.
+        SegmentationError: no screen in a chroma key's background frames; fewer background
+            frames than ``min_background_frames``.
     """
 
     def __init__(
@@ -150,13 +152,27 @@ class SequenceSegmenter:
         self.model = self.key = self.screen = None
         if sequence.method == "masks":
             return
+        if sequence.method == "background":
+            least = max(options.min_background_frames, 2)
+            if len(sequence.background) < least:
+                raise SegmentationError(
+                    f"{sequence.name}: {len(sequence.background)} background frames, expected "
+                    f"at least {least} (segmentation.min_background_frames)"
+                )
+            return  # the model is made on the first frame (prepare)
         size = sequence.camera.image_size
         empty = load_frames(sequence.background, size)[0] if sequence.background else None
-        if sequence.method == "background":
-            self.model = fit_background(empty, options)
-        else:  # chroma_key
-            self.key = key_colour(options.chroma_key, empty)
-            self.screen = None if empty is None else screen_frame(empty, options.chroma_key)
+        self.key = key_colour(options.chroma_key, empty)
+        self.screen = None if empty is None else screen_frame(empty, options.chroma_key)
+
+    def prepare(self) -> SequenceSegmenter:
+        """Make the background model (with background subtraction), if not made yet: reads
+        ``background/`` (about 0.3 s at 720x576). :meth:`segmented` calls it first."""
+        seq = self.sequence
+        if seq.method == "background" and self.model is None:
+            empty = load_frames(seq.background, seq.camera.image_size)[0]
+            self.model = fit_background(empty, self.options)
+        return self
 
     def silhouettes(self) -> Iterator[torch.Tensor]:
         """The frames' silhouettes, (H, W) bool each, in order (``masks/`` are read, not the
@@ -177,7 +193,7 @@ class SequenceSegmenter:
         feet is bridged too, so which one a frame is is for the tracker to tell (from where
         it expects the body). 0 makes no second silhouette.
         """
-        seq = self.sequence
+        seq = self.prepare().sequence
         if seq.method == "masks":
             for path in seq.masks[: seq.num_frames]:
                 yield torch.from_numpy(read_mask(path, seq.camera.image_size) > 127), None
