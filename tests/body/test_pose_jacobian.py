@@ -123,3 +123,16 @@ def test_the_kinematics_pass_handed_back_gives_the_same_jacobian_bitwise(model):
     alone = model.pose_jacobian(scales, q, t, r, index)
     handed = model.pose_jacobian(scales, q, t, r, index, passed)
     assert torch.equal(alone[0], handed[0]) and torch.equal(alone[1], handed[1])
+
+
+def test_a_pass_reposed_for_other_vertices_is_their_own_pass_bitwise(model):
+    """repose keeps a pass's frames, rotations and origins and poses other vertices as a pose
+    pass of them would (the tracker's next contour choice starts from its last solve's pass)."""
+    scales, q, t, r = _random_pose(model, 3, seed=12, root_angle=2.0)
+    some = torch.arange(0, model.template.vertices.shape[0], 7)
+    every = torch.arange(model.template.vertices.shape[0])
+    reposed = model.repose(model.pose_pass(scales, q, t, r, some), scales, every)
+    own = model.pose_pass(scales, q, t, r, every)
+    assert torch.equal(reposed[2].vertices, own[2].vertices)
+    assert torch.equal(reposed[3], own[3])  # each vertex's segment
+    assert torch.equal(reposed[2].vertices[:, some], model(scales, q, t, r, some).vertices)

@@ -257,14 +257,26 @@ class BodyModel(torch.nn.Module):
         origins_t = torch.stack(origins, dim=1)  # (B, S, 3)
 
         if vertex_index is not None:
-            seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
-            local = scales[:, seg] * lift(self._vertices[vertex_index], dual)  # (B, K, 3)
-            vertices = (rot[:, seg] @ local[..., None])[..., 0] + origins_t[:, seg]
+            vertices = self._placed(scales, rot, origins_t, vertex_index, dual)
             return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
         local = scales[:, :, None, :] * lift(self._padded, dual)  # (B, S, Vmax, 3)
         posed = torch.einsum("bsij,bsvj->bsvi", rot, local) + origins_t[:, :, None, :]
         vertices = posed.reshape(posed.shape[0], -1, 3)[:, self._flat_index]
         return BodyOutput(vertices=vertices, origins=origins_t, rotations=rot)
+
+    def _placed(
+        self,
+        scales: torch.Tensor,
+        rot: torch.Tensor,
+        origins: torch.Tensor,
+        vertex_index: torch.Tensor,
+        dual: bool,
+    ) -> torch.Tensor:
+        """(B, K, 3) the vertices ``vertex_index`` (K,) of segments posed by their world
+        rotations ``rot`` (B, S, 3, 3) and origins (B, S, 3)."""
+        seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
+        local = scales[:, seg] * lift(self._vertices[vertex_index], dual)  # (B, K, 3)
+        return (rot[:, seg] @ local[..., None])[..., 0] + origins[:, seg]
 
     def _posed_frames(
         self,
@@ -329,6 +341,15 @@ class BodyModel(torch.nn.Module):
         rot_root = axis_angle_to_matrix(root_rotation)
         passed = self._posed_frames(scales, joint_angles, root_translation, rot_root, vertex_index)
         return (rot_root, *passed)
+
+    def repose(self, passed: tuple, scales: torch.Tensor, vertex_index: torch.Tensor) -> tuple:
+        """The :meth:`pose_pass` of other vertices ``vertex_index`` at the pose of ``passed``
+        (a pose pass with these ``scales``): its chain frames, rotations and origins are kept,
+        only the vertices are posed, as a pose pass there would pose them."""
+        rot_root, frames, out, _ = passed
+        vertices = self._placed(scales, out.rotations, out.origins, vertex_index, False)
+        seg = self._vertex_segment.to(vertex_index.device)[vertex_index]
+        return rot_root, frames, BodyOutput(vertices, out.origins, out.rotations), seg
 
     def pose_jacobian(
         self,

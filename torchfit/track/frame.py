@@ -92,16 +92,24 @@ def solve_frame(
         xtol=options.xtol,
     )
     cost = torch.zeros(x.shape[0], dtype=x.dtype)
-    target = _depth_target(model, scales, camera, prediction, layout)
+    # the limbs' depth targets at the prediction; where the solve starts there, from its
+    # first kinematics pass
+    at_prediction = torch.equal(x, prediction)
+    target = None if at_prediction else _depth_target(model, scales, camera, prediction, layout)
     scale = image_scale(camera, options.reference_px_per_m).to(x)
-    residual = None
+    residual = problem = None
     every = torch.arange(model.template.vertices.shape[0], device=x.device)
     rows = torch.arange(x.shape[0], device=x.device)
     for _ in range(options.rounds):
         # one kinematics pass of every vertex serves the contour choice and the solve's start
+        # (the last solve's, where it ended on its accepted trial point)
         with torch.no_grad():
-            t, r, q = PoseLayout.split(x)
-            whole = model.pose_pass(scales, q, t, r, every)
+            whole = None if problem is None else problem.pass_at(x, every)
+            if whole is None:
+                t, r, q = PoseLayout.split(x)
+                whole = model.pose_pass(scales, q, t, r, every)
+            if target is None:
+                target = _depth_target(model, scales, camera, prediction, layout, whole[2].vertices)
             pix = project_points(whole[2].vertices, camera)
         sel = select_contour(
             sampler, pix, person.contours[0], person.valid[0], camera.image_size, 1.0

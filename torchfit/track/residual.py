@@ -21,16 +21,20 @@ def _limbs(layout: PoseLayout) -> torch.Tensor:
     return limbs if layout.depth_weight else limbs[:, :0]
 
 
-def _depth_target(model, scales, camera, prediction, layout):
+def _depth_target(model, scales, camera, prediction, layout, posed=None):
     """Per row, each limb joint's camera ray (B, K, 3) and the prediction's offset of the
     joint from the one its limb hangs from, along that ray (B, K) (None, None without limbs).
-    """
+    ``posed``: (B, V, 3) every template vertex posed at the prediction, where the caller has
+    them (the same numbers as posing the limbs' vertices here)."""
     limbs = _limbs(layout)
     if not limbs.shape[1]:
         return None, None
-    t, r, q = PoseLayout.split(prediction)
-    with torch.no_grad():
-        world = model(scales, q, t, r, vertex_index=limbs.flatten()).vertices
+    if posed is not None:
+        world = posed[:, limbs.flatten()]
+    else:
+        t, r, q = PoseLayout.split(prediction)
+        with torch.no_grad():
+            world = model(scales, q, t, r, vertex_index=limbs.flatten()).vertices
     joint, base = world.reshape(world.shape[0], 2, -1, 3).unbind(1)
     centre = camera_centre(camera.R, camera.t).to(world)
     ray = joint - centre[:, None]
@@ -154,6 +158,17 @@ class _FrameResidual:
         rot_root, frames, out, seg = whole
         sub = BodyOutput(out.vertices[:, self.verts], out.origins, out.rotations)
         self._last = (xr.clone(), index.clone(), (rot_root, frames, sub, seg[self.verts]))
+
+    def pass_at(self, xr: torch.Tensor, vertex_index: torch.Tensor) -> tuple | None:
+        """A kinematics pass of the template vertices ``vertex_index`` at the rows ``xr`` of
+        every problem in order, from the last one made there (the solver's accepted trial
+        point: a frame's next contour choice starts where its last solve ended), or None."""
+        last = self._last
+        if last is None or last[1].numel() != xr.shape[0] or not torch.equal(last[0], xr):
+            return None
+        if not torch.equal(last[1], torch.arange(xr.shape[0], device=last[1].device)):
+            return None
+        return self.model.repose(last[2], self.scales, vertex_index)
 
     def _pass(self, xr: torch.Tensor, index: torch.Tensor, rows: dict) -> tuple:
         """The kinematics pass at ``xr``: the one handed over or last made there, else new."""
