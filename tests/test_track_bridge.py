@@ -11,7 +11,7 @@ from test_track import SIZE, _empty_sequence, _pose
 
 from torchfit.camera import project_points
 from torchfit.errors import ConfigError
-from torchfit.track import PoseLayout, TrackOptions, frame_data, track
+from torchfit.track import PoseLayout, TrackOptions, frame_data, track, tracker
 from torchfit.track.silhouettes import SECOND_TRIAL_EVERY, FrameSilhouettes, expected
 from torchfit.viz.raster import render_silhouette
 
@@ -122,6 +122,33 @@ def test_a_second_silhouette_the_prediction_misses_is_taken_where_it_fits_better
     assert expected(model, scales, camera, start, frames[0]) == [False]
     assert all(r.bridged for r in recs), [r.bridged for r in recs]
     assert err.mean() < 0.5 * err_alone.mean(), (err, err_alone)
+
+
+def test_the_solves_to_the_second_silhouette_are_rows_of_the_frames_solve(model, camera):
+    """A frame tried on its second silhouette is one solve: the frame's row with its own
+    iterations, and the two solves to the second (from the prediction, and with the legs
+    straight) with twice as many; the tracks are those of the separate solves (the test
+    above's)."""
+    xs, whole, _ = _sequence(model, camera)
+    first = whole & ~_silhouettes(model, camera, xs)[1]
+    start = xs[:1].clone()
+    start[0, 1] += 0.25
+    frames = _frames(camera, first, [whole[k] for k in range(FRAMES)], OPTS)
+    scales = torch.ones(1, model.num_segments, 3, dtype=torch.float64)
+    calls = []
+    solve = tracker.solve_frame
+
+    def counted(*a, **k):
+        limits = a[8] if len(a) > 8 else k.get("iterations")
+        calls.append((a[4].shape[0], None if limits is None else limits.tolist()))
+        return solve(*a, **k)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(tracker, "solve_frame", counted)
+        track(model, scales, camera, iter(frames), start, OPTS)
+    trials = [c for c in calls if c[0] == 3]
+    assert trials and all(c[1] == [3, 6, 6] for c in trials), calls
+    assert all(c in ((1, None), (3, [3, 6, 6])) for c in calls), calls
 
 
 def test_legs_spread_off_the_stumps_are_brought_back_by_the_solve_to_the_second(model, camera):

@@ -6,7 +6,7 @@ import pytest
 import torch
 from solver_cases import DIVERGING, EASY, HARD, NAN, make_mixed
 
-from torchfit.solver import LMIterate, LMOptions, LMStatus, levenberg_marquardt
+from torchfit.solver import LMIterate, LMOptions, LMStatus, SolverError, levenberg_marquardt
 
 KINDS = [EASY, HARD, DIVERGING, NAN, HARD, EASY, NAN]
 DATA = torch.tensor(
@@ -116,3 +116,24 @@ def test_nonfinite_start_is_reported_not_raised():
     assert res.statuses[1] == LMStatus.NONFINITE and res.success[0]
     torch.testing.assert_close(res.x[0], torch.tensor([torch.e], dtype=torch.float64))
     assert int(res.n_iter[1]) == 0
+
+
+def test_each_problem_stops_at_its_own_iteration_limit():
+    """``max_iter`` per problem: a batch whose problems want different numbers of iterations
+    gives each the solve it would have alone with its own limit."""
+    opts = LMOptions(max_iter=60, ftol=1e-14, xtol=1e-14, gtol=1e-14, max_bad_steps=4)
+    limits = torch.tensor([1, 3, 2, 5, 4, 1, 2])
+    batch = levenberg_marquardt(make_mixed(KINDS, DATA), X0, opts, max_iter=limits)
+    for b, kind in enumerate(KINDS):
+        own = LMOptions(
+            max_iter=int(limits[b]), ftol=1e-14, xtol=1e-14, gtol=1e-14, max_bad_steps=4
+        )
+        alone = levenberg_marquardt(make_mixed([kind], DATA[b : b + 1]), X0[b : b + 1], own)
+        torch.testing.assert_close(batch.x[b : b + 1], alone.x, rtol=1e-10, atol=0)
+        assert batch.n_iter[b] == alone.n_iter[0] <= limits[b]
+        assert batch.status[b] == alone.status[0]
+    assert (batch.status == LMStatus.MAX_ITER).sum() >= 3
+    with pytest.raises(SolverError, match=r"max_iter: expected a \(7,\) tensor"):
+        levenberg_marquardt(make_mixed(KINDS, DATA), X0, opts, max_iter=torch.tensor([1, 2]))
+    with pytest.raises(SolverError, match="max_iter: expected integers >= 1"):
+        levenberg_marquardt(make_mixed(KINDS, DATA), X0, opts, max_iter=torch.zeros(7))

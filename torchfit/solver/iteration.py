@@ -215,7 +215,7 @@ def lm_step(s: dict, fn: ResidualFn, opts: LMOptions) -> tuple[torch.Tensor, tor
     fail = running & (bad >= opts.max_bad_steps)
     fail_code = torch.where(bad_kind == _BAD_LINALG, LMStatus.LINALG, LMStatus.NONFINITE)
     new = torch.where((new == 0) & fail, fail_code, new)
-    limit = n_iter >= opts.max_iter
+    limit = n_iter >= (s["max_iter"] if "max_iter" in s else opts.max_iter)
     if opts.max_nfev is not None:
         limit = limit | (nfev + s["n_free"] * s["njev"] >= opts.max_nfev)
     new = torch.where((new == 0) & limit, LMStatus.MAX_ITER, new)

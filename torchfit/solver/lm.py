@@ -118,6 +118,7 @@ def levenberg_marquardt(
     indexed: bool = False,
     loss_units: torch.Tensor | None = None,
     jacobian_blocks: list[Block] | None = None,
+    max_iter: torch.Tensor | None = None,
 ) -> LMResult:
     """Solve ``B`` independent nonlinear least-squares problems ``min_x 0.5 |r_b(x)|²``.
 
@@ -159,6 +160,9 @@ def levenberg_marquardt(
             on (:data:`torchfit.solver.normal.Block`). The normal equations then sum
             ``J_kᵀ J_k`` over each block's own columns; a Jacobian that is not zero outside
             its blocks gets wrong normal equations.
+        max_iter: optional ``(B,)`` integer limit on each problem's trial steps, in place of
+            ``options.max_iter`` (problems that want more iterations than others share a
+            batch: the others stop at their own limit, as they would alone).
 
     Returns:
         :class:`LMResult` with ``x (B, P)``, ``cost (B,)``, ``status (B,)`` and counters.
@@ -223,6 +227,8 @@ def levenberg_marquardt(
             # free parameters per problem: what a Jacobian costs in evaluations for max_nfev
             "n_free": (~fixed).sum(dim=1),
         }
+        if max_iter is not None:
+            state["max_iter"] = _row_limits(max_iter, bsz, device)
         optional = {"mask": mask, "lo": lo, "hi": hi, "units": units}
         state.update({k: v for k, v in optional.items() if v is not None})
         if accel:  # the Jacobian of the last update, for J v in the geodesic acceleration
@@ -288,6 +294,16 @@ def levenberg_marquardt(
         damping=s["mu"],
         residual=s["r"],
     )
+
+
+def _row_limits(limits: torch.Tensor, bsz: int, device) -> torch.Tensor:
+    """The per-problem ``max_iter`` as a (B,) long tensor; raises :class:`SolverError`."""
+    if not isinstance(limits, torch.Tensor) or tuple(limits.shape) != (bsz,):
+        got = tuple(limits.shape) if isinstance(limits, torch.Tensor) else type(limits).__name__
+        raise SolverError(f"max_iter: expected a ({bsz},) tensor, got {got}")
+    if limits.is_floating_point() or bool((limits < 1).any()):
+        raise SolverError("max_iter: expected integers >= 1")
+    return limits.to(device=device, dtype=torch.long)
 
 
 def _check_blocks(blocks: list[Block] | None, m: int, p: int) -> None:

@@ -65,6 +65,7 @@ def solve_frame(
     prediction: torch.Tensor,
     options: TrackOptions,
     sampler: EdgeSampler | None = None,
+    iterations: torch.Tensor | None = None,
 ) -> FrameResult:
     """Fit the pose of one frame of each of B sequences.
 
@@ -77,14 +78,18 @@ def solve_frame(
         prediction: (B, P) the temporal term's target.
         options: tracker options.
         sampler: edge sampler of the model mesh (made when None).
+        iterations: (B,) LM iterations per contour choice of each row, where rows want
+            different numbers (default: ``options.iterations``); a row's solve is the one it
+            would have alone.
     """
     sampler = sampler or EdgeSampler(model.faces, options.samples_per_edge)
     layout = layout.for_options(options)  # the weights are this solve's (a restart's, ...)
     camera: Camera = person.camera
     x = layout.clip(x0)
+    limits = iterations
     iterations = torch.zeros(x.shape[0], dtype=torch.long)
     lm = LMOptions(
-        max_iter=options.iterations,
+        max_iter=options.iterations if limits is None else int(limits.max()),
         fold_batch=False,
         min_diag=options.min_diag,
         initial_damping=options.initial_damping,
@@ -128,6 +133,7 @@ def solve_frame(
             lower=layout.lower,
             upper=layout.upper,
             indexed=True,
+            max_iter=limits,
         )
         x, cost, residual = res.x, res.cost, res.residual
         iterations += res.n_iter.cpu().long()

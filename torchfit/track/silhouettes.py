@@ -21,7 +21,7 @@ import cv2
 import torch
 
 from torchfit.body.model import BodyModel
-from torchfit.camera import Camera, project_points
+from torchfit.camera import Camera, project_points, stack_cameras
 from torchfit.fit.person import PersonData
 from torchfit.track.options import PoseLayout, TrackOptions
 from torchfit.viz.raster import render_silhouette
@@ -29,6 +29,7 @@ from torchfit.viz.raster import render_silhouette
 __all__ = [
     "FrameSilhouettes",
     "expected",
+    "joined",
     "SECOND_INSIDE",
     "SECOND_MARGIN_PX",
     "SECOND_BETTER",
@@ -90,15 +91,33 @@ class FrameSilhouettes:
         return _rows_of(self.person, second, torch.tensor(rows))
 
 
-def _rows_of(first: PersonData, second: PersonData, take: torch.Tensor) -> PersonData:
-    """Person data (one posture) with the rows ``take`` (B,) bool from ``second``, the others
-    from ``first`` (contours padded to the wider of the two)."""
+def _widening(first: PersonData, second: PersonData):
+    """Pads a (B, C, ...) tensor of one posture's contours to the wider of the two's."""
     width = max(first.contours[0].shape[1], second.contours[0].shape[1])
 
     def wide(t: torch.Tensor) -> torch.Tensor:
         pad = [0, 0] * (t.dim() - 2) + [0, width - t.shape[1]]
         return torch.nn.functional.pad(t, pad)
 
+    return wide
+
+
+def joined(first: PersonData, second: PersonData) -> PersonData:
+    """Person data (one posture) with the rows of ``first``, then those of ``second``
+    (contours padded to the wider of the two; a row's data do not depend on the others')."""
+    wide = _widening(first, second)
+    return PersonData(
+        [torch.cat([wide(first.contours[0]), wide(second.contours[0])])],
+        [torch.cat([wide(first.valid[0]), wide(second.valid[0])])],
+        [torch.cat([first.distance_maps[0], second.distance_maps[0]])],
+        stack_cameras([first.camera, second.camera]),
+    )
+
+
+def _rows_of(first: PersonData, second: PersonData, take: torch.Tensor) -> PersonData:
+    """Person data (one posture) with the rows ``take`` (B,) bool from ``second``, the others
+    from ``first`` (contours padded to the wider of the two)."""
+    wide = _widening(first, second)
     pick = take.to(first.contours[0].device)
     rows = lambda a, b: torch.where(pick.view(-1, *[1] * (a.dim() - 1)), b, a)  # noqa: E731
     return PersonData(

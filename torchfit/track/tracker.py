@@ -58,6 +58,7 @@ from torchfit.track.silhouettes import (
     SECOND_TRIAL_EVERY,
     FrameSilhouettes,
     expected,
+    joined,
 )
 
 __all__ = ["FrameRecord", "FrameSilhouettes", "frame_data", "track"]
@@ -115,6 +116,15 @@ def _keep_better(res, ref: torch.Tensor, rows: torch.Tensor, other, factor: floa
     return took
 
 
+def _split(res: FrameResult, sizes: list[int]) -> list[FrameResult]:
+    """A solve's result cut into consecutive groups of rows of these sizes."""
+    names, at, out = [f.name for f in fields(FrameResult)], 0, []
+    for n in sizes:
+        out.append(FrameResult(*(getattr(res, name)[at : at + n] for name in names)))
+        at += n
+    return out
+
+
 def _solve_from(model, scales, person, layout, rows, starts, options, sampler) -> list:
     """Solve the rows ``rows`` (n,) of a frame (``person`` holds their n rows) once from each
     start in ``starts`` (each (n, P), pulled towards itself), all in one batch (a frame's
@@ -125,10 +135,28 @@ def _solve_from(model, scales, person, layout, rows, starts, options, sampler) -
     res = solve_frame(
         model, scales[rows][every], person.subset(every), layout, x0, x0, options, sampler
     )
-    names = [f.name for f in fields(FrameResult)]
-    return [
-        FrameResult(*(getattr(res, name)[j * n : (j + 1) * n] for name in names)) for j in range(k)
-    ]
+    return _split(res, [n] * k)
+
+
+def _solve_with(model, scales, person, layout, pred, options, sampler, trial=None):
+    """The frame's solve of every row from the prediction ``pred`` (B, P); with ``trial`` =
+    ``(rows, other, starts, more)``, in the same batch the rows ``rows`` (n,) solved to the
+    person data ``other`` (their n rows) once from each start in ``starts`` (each (n, P),
+    pulled towards itself) with ``more.iterations`` (the other options are the frame's): each
+    row's solve is the one it would have alone, the frame's rows stop at their own
+    iterations. The frame's :class:`FrameResult` and one per start."""
+    if trial is None:
+        return solve_frame(model, scales, person, layout, pred, pred, options, sampler), []
+    rows, other, starts, more = trial
+    b, n, k = pred.shape[0], len(rows), len(starts)
+    every = torch.arange(n).repeat(k)
+    x0 = torch.cat([pred, *starts])
+    limits = torch.tensor([options.iterations] * b + [more.iterations] * (n * k))
+    data = joined(person, other.subset(every))
+    sc = torch.cat([scales, scales[rows][every]])
+    res = solve_frame(model, sc, data, layout, x0, x0, options, sampler, limits)
+    first, *alts = _split(res, [b] + [n] * k)
+    return first, alts
 
 
 def _median(values: list[float]) -> float:
@@ -217,7 +245,7 @@ def track(
             # adds, or else where a solve to it explains it better than the first's solve
             bridged = expected(model, scales, cameras, pred, second)
             person = second.chosen(bridged, cameras, options, model.dtype)
-        res = solve_frame(model, scales, person, layout, pred, pred, options, sampler)
+        trial = None
         if second is not None:
             # the solve to the second silhouette: in a stretch of frames whose second one was
             # refused, every SECOND_TRIAL_EVERY-th (the frames of a stretch are alike)
@@ -236,15 +264,18 @@ def track(
                     straight = pred[idx].clone()
                     straight[:, legs] = 0.0
                     starts.append(straight)
-                took = []
-                alts = _solve_from(model, scales, other, layout, idx, starts, recovery, sampler)
-                for alt in alts:
-                    took += _keep_better(res, res.reference_rms, idx, alt, SECOND_BETTER)
-                took = sorted(set(took))
-                if took:
-                    for i in took:
-                        bridged[i], refused[i] = True, 0
-                    person = second.chosen(bridged, cameras, options, model.dtype)
+                trial = (idx, other, starts, recovery)
+        # the frame's solve, and those to the second silhouettes as more rows of its batch
+        res, alts = _solve_with(model, scales, person, layout, pred, options, sampler, trial)
+        if alts:
+            took = []
+            for alt in alts:
+                took += _keep_better(res, res.reference_rms, idx, alt, SECOND_BETTER)
+            took = sorted(set(took))
+            if took:
+                for i in took:
+                    bridged[i], refused[i] = True, 0
+                person = second.chosen(bridged, cameras, options, model.dtype)
         status = ["ok"] * b
         limit = [
             max(options.recover_min_px, options.recover_factor * _median(h)) if h else first
