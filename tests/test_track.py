@@ -542,6 +542,18 @@ def test_a_handed_over_pass_gives_the_residual_and_jacobian_of_a_fresh_one(model
     again.start_from(x, rows, whole)
     assert torch.equal(again(y, rows)[0], fresh(y, rows)[0])
     assert not torch.equal(fresh(y, rows)[0], fresh(x, rows)[0])
+    # handed over for the analytic Jacobian: the first residual there is made with the
+    # Jacobian (the same numbers), which the solver's Jacobian call then takes as made
+    ahead = problem()
+    ahead.start_from(x, rows, whole, jacobian=True)
+    r_a, mask_a = ahead(x, rows)
+    assert torch.equal(r_a, fresh(x, rows)[0]) and torch.equal(mask_a, fresh(x, rows)[1])
+    made = ahead._ahead[2]
+    jac_a, r_ja = ahead.analytic_jacobian(x, rows)
+    assert jac_a is made[0] and r_ja is made[1]  # handed back, not made again
+    assert torch.equal(jac_a, jac_f) and torch.equal(r_ja, r_f)
+    assert torch.equal(ahead(y, rows)[0], fresh(y, rows)[0])
+    assert ahead.analytic_jacobian(x, rows)[0] is not made[0]  # once only
 
 
 def _one_frame(model, camera, opts, offset):

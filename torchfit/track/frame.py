@@ -122,7 +122,7 @@ def solve_frame(
         problem = _FrameResidual(
             model, scales, person, layout, prediction, sampler, sel, target, scale
         )
-        problem.start_from(x, rows, whole)
+        problem.start_from(x, rows, whole, jacobian=options.jacobian == "analytic")
         res = levenberg_marquardt(
             problem,
             x,

@@ -77,6 +77,7 @@ class _FrameResidual:
         self.n_model = selection.sample_valid.sum(1).clamp_min(1)
         self.n_person = self.valid.sum(1).clamp_min(1)
         self._last = None  # (rows, index, kinematics pass) of the last residual evaluation
+        self._ahead = None  # (rows, index, (J, r)): the Jacobian made with the start's residual
         self._picked: dict[tuple, dict] = {}  # index -> the per-row data of those rows
 
     _PER_ROW = ("scales", "pa", "pb", "ma", "mb", "mt", "pt", "contours", "valid")
@@ -151,13 +152,18 @@ class _FrameResidual:
         e_f = self.floor_weight * lowest.values
         return [e_t, e_f, *self._neutral(xr), *limbs], self.soles[lowest.indices[:, 0]]
 
-    def start_from(self, xr: torch.Tensor, index: torch.Tensor, whole: tuple) -> None:
+    def start_from(
+        self, xr: torch.Tensor, index: torch.Tensor, whole: tuple, jacobian: bool = False
+    ) -> None:
         """Hand over the kinematics pass ``whole`` of every template vertex at the rows
         ``xr`` (problems ``index``), made for the contour choice: the first residual there and
-        the Jacobian take their vertices from it instead of posing the body again."""
+        the Jacobian take their vertices from it instead of posing the body again. With
+        ``jacobian`` (the solve's is :meth:`analytic_jacobian`), the first residual there is
+        the one the Jacobian makes with it (the same numbers), made once for the two."""
         rot_root, frames, out, seg = whole
         sub = BodyOutput(out.vertices[:, self.verts], out.origins, out.rotations)
         self._last = (xr.clone(), index.clone(), (rot_root, frames, sub, seg[self.verts]))
+        self._ahead = () if jacobian else None  # made at the first residual there
 
     def pass_at(self, xr: torch.Tensor, vertex_index: torch.Tensor) -> tuple | None:
         """A kinematics pass of the template vertices ``vertex_index`` at the rows ``xr`` of
@@ -170,15 +176,23 @@ class _FrameResidual:
             return None
         return self.model.repose(last[2], self.scales, vertex_index)
 
+    def _at_last(self, xr: torch.Tensor, index: torch.Tensor) -> bool:
+        """Whether the last kinematics pass was made at the rows ``xr`` of problems ``index``."""
+        last = self._last
+        return last is not None and torch.equal(last[1], index) and torch.equal(last[0], xr)
+
     def _pass(self, xr: torch.Tensor, index: torch.Tensor, rows: dict) -> tuple:
         """The kinematics pass at ``xr``: the one handed over or last made there, else new."""
-        last = self._last
-        if last is not None and torch.equal(last[1], index) and torch.equal(last[0], xr):
-            return last[2]
+        if self._at_last(xr, index):
+            return self._last[2]
         t, r, q = PoseLayout.split(xr)
         return self.model.pose_pass(rows["scales"], q, t, r, self.verts)
 
     def __call__(self, xr: torch.Tensor, index: torch.Tensor):
+        if self._ahead == () and self._at_last(xr, index):
+            made = self.analytic_jacobian(xr, index)
+            self._ahead = (xr.clone(), index.clone(), made)
+            return made[1], self._at(index)["mask"]
         rows = self._at(index)
         passed = self._pass(xr, index, rows)
         # the solver asks for the Jacobian where it accepts a step: the pass is kept for it
@@ -193,6 +207,9 @@ class _FrameResidual:
         """The Jacobian in one pass: the posed contour vertices' pose derivatives in closed
         form (:meth:`BodyModel.pose_jacobian`), through the projection's derivative, times
         each residual entry's derivative w.r.t. its own endpoint pixels (reverse mode)."""
+        ahead, self._ahead = self._ahead, None
+        if ahead and torch.equal(ahead[1], index) and torch.equal(ahead[0], xr):
+            return ahead[2]  # made with the first residual, here
         n, p_count = xr.shape
         t, r, q = PoseLayout.split(xr)
         rows = self._at(index)
