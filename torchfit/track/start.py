@@ -19,6 +19,7 @@ import torch
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import facing_yaw, nominal_joint_angles
 from torchfit.camera import Camera, camera_centre, floor_points, ray_directions
+from torchfit.fit.model_contour import EdgeSampler
 from torchfit.fit.person import PersonData
 from torchfit.track.frame import solve_frame
 from torchfit.track.options import LOST_CONFIDENCE, PoseLayout, TrackOptions
@@ -142,8 +143,10 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
     # a sequence, 4 at a time 0.9 s)
     xs, rms = [], []
     log.info("first frame: %d pose hypotheses for %d sequence(s)", b * n, b)
+    sampler = EdgeSampler(model.faces, options.samples_per_edge)  # once for every chunk
     for rows in torch.arange(b * n).split(_START_ROWS // n * n or n):
-        res = solve_frame(model, sc[rows], person.subset(rows), layout, x0[rows], x0[rows], opts)
+        data = person.subset(rows)
+        res = solve_frame(model, sc[rows], data, layout, x0[rows], x0[rows], opts, sampler)
         xs.append(res.x)
         rms.append(res.reference_rms)
     x, rms = torch.cat(xs), torch.cat(rms).reshape(b, 2, n // 2)
