@@ -77,7 +77,8 @@ class _FrameResidual:
         self.n_model = selection.sample_valid.sum(1).clamp_min(1)
         self.n_person = self.valid.sum(1).clamp_min(1)
         self._last = None  # (rows, index, kinematics pass) of the last residual evaluation
-        self._ahead = None  # (rows, index, (J, r)): the Jacobian made with the start's residual
+        self._first = False  # the first residual is to be made with the Jacobian (start_from)
+        self._ahead = None  # (rows, index, (J, r)): the Jacobian made with the first residual
         self._picked: dict[tuple, dict] = {}  # index -> the per-row data of those rows
 
     _PER_ROW = ("scales", "pa", "pb", "ma", "mb", "mt", "pt", "contours", "valid")
@@ -163,7 +164,7 @@ class _FrameResidual:
         rot_root, frames, out, seg = whole
         sub = BodyOutput(out.vertices[:, self.verts], out.origins, out.rotations)
         self._last = (xr.clone(), index.clone(), (rot_root, frames, sub, seg[self.verts]))
-        self._ahead = () if jacobian else None  # made at the first residual there
+        self._first, self._ahead = jacobian, None
 
     def pass_at(self, xr: torch.Tensor, vertex_index: torch.Tensor) -> tuple | None:
         """A kinematics pass of the template vertices ``vertex_index`` at the rows ``xr`` of
@@ -189,7 +190,8 @@ class _FrameResidual:
         return self.model.pose_pass(rows["scales"], q, t, r, self.verts)
 
     def __call__(self, xr: torch.Tensor, index: torch.Tensor):
-        if self._ahead == () and self._at_last(xr, index):
+        if self._first and self._at_last(xr, index):
+            self._first = False
             made = self.analytic_jacobian(xr, index)
             self._ahead = (xr.clone(), index.clone(), made)
             return made[1], self._at(index)["mask"]
