@@ -20,6 +20,7 @@ pixel (0, 0) the centre of the top-left pixel.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -216,12 +217,19 @@ def _near_boundary(
     r = int(np.floor(tolerance))
     boundary = np.zeros((h + 2 * r, w + 2 * r), bool)
     boundary[bpix[:, 1] + r, bpix[:, 0] + r] = True
+    for a, b in _offsets(tolerance):
+        near |= boundary[vi + r + b, ui + r + a]
+    return near
+
+
+@functools.lru_cache(maxsize=8)
+def _offsets(tolerance: float) -> tuple[tuple[int, int], ...]:
+    """The pixel offsets ``(du, dv)`` with ``du² + dv² <= tolerance²``."""
+    r = int(np.floor(tolerance))
     span = np.arange(-r, r + 1)
     du, dv = np.meshgrid(span, span)
     within = du * du + dv * dv <= tolerance * tolerance
-    for a, b in zip(du[within].tolist(), dv[within].tolist(), strict=True):
-        near |= boundary[vi + r + b, ui + r + a]
-    return near
+    return tuple(zip(du[within].tolist(), dv[within].tolist(), strict=True))
 
 
 @torch.no_grad()

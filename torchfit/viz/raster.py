@@ -86,7 +86,7 @@ def edge_outline(
     w, h = image_size
     if not len(edges):
         return np.zeros((0, 2), np.int64)
-    used = pixels[np.unique(edges)]
+    used = pixels[np.asarray(edges).ravel()]  # the edges' box (a vertex may repeat)
     lo = np.floor(used.min(0)).astype(np.int64) - 1
     hi = np.ceil(used.max(0)).astype(np.int64) + 1
     if lo.min() < 0 or hi[0] > w - 1 or hi[1] > h - 1:
