@@ -12,7 +12,7 @@ from test_track import SIZE, _empty_sequence, _pose
 from torchfit.camera import project_points
 from torchfit.errors import ConfigError
 from torchfit.track import PoseLayout, TrackOptions, frame_data, track, tracker
-from torchfit.track.silhouettes import SECOND_TRIAL_EVERY, FrameSilhouettes, expected
+from torchfit.track.silhouettes import SECOND_TRIAL_EVERY, FrameSilhouettes, expected, placed
 from torchfit.viz.raster import render_silhouette
 
 # test_track's module fixtures, shared
@@ -338,3 +338,35 @@ def test_rows_that_take_and_refuse_their_second_silhouette_track_as_they_do_alon
             torch.testing.assert_close(a.x, b.x, atol=1e-6, rtol=0)
     assert [r.bridged for r in both[0]][2:] == [True] * (FRAMES - 2)
     assert not any(r.bridged for r in both[1])
+
+
+def test_the_second_silhouettes_data_made_for_the_rows_that_have_one(model, camera):
+    """The reader makes the second silhouettes' contours and maps only for the rows that have
+    one (``placed`` into the first's data): the batch tracks as with the data of every row."""
+    xs, whole, first = _sequence(model, camera)
+    cams = camera[[0, 0]]
+    scales = torch.ones(2, model.num_segments, 3, dtype=torch.float64)
+    runs = []
+    for only_rows in (False, True):
+        frames = []
+        for k in range(FRAMES):
+            masks = torch.stack([first[k], whole[k]])
+            second = torch.stack([whole[k], whole[k]])  # row 1 has none: it holds its first
+            has = torch.tensor([k >= 2, False])
+            person = frame_data(masks, cams, OPTS, torch.float64)
+            if not has.any():  # as the reader hands over a frame without second silhouettes
+                frames.append(person)
+                continue
+            if only_rows:
+                rows = has.nonzero().flatten()
+                ahead = placed(
+                    person, rows, frame_data(second[rows], cams[rows], OPTS, torch.float64)
+                )
+            else:
+                ahead = frame_data(second, cams, OPTS, torch.float64)
+            frames.append(FrameSilhouettes(person, masks, second, has, ahead))
+        runs.append(track(model, scales, cams, iter(frames), xs[[0, 0]], OPTS))
+    for row in range(2):
+        for a, b in zip(runs[0][row], runs[1][row], strict=True):
+            assert torch.equal(a.x, b.x) and a.bridged == b.bridged
+    assert any(r.bridged for r in runs[1][0]) and not any(r.bridged for r in runs[1][1])

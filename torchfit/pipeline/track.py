@@ -47,7 +47,7 @@ from torchfit.io.video import VideoWriter
 from torchfit.measurements import JOINT_NAMES
 from torchfit.pipeline.sequence import Sequence, SequenceSegmenter, load_sequence
 from torchfit.track import PoseLayout, TrackOptions, frame_data, start_poses, track
-from torchfit.track.silhouettes import FrameSilhouettes
+from torchfit.track.silhouettes import FrameSilhouettes, placed
 
 __all__ = [
     "TrackConfig",
@@ -166,7 +166,11 @@ def _frames(
             second = torch.stack(
                 [m if s is None else s for m, s in zip(masks, seconds, strict=True)]
             )
-            extra = frame_data(second, cameras, config.track, dtype)  # made here, ahead
+            # made here, ahead, for the rows that have one (the others' are their first's)
+            rows = has.nonzero().flatten()
+            extra = frame_data(second[rows], cameras[rows], config.track, dtype)
+            if len(rows) < len(has):
+                extra = placed(person, rows, extra)
             person = FrameSilhouettes(person, masks, second, has, extra)
             if keep and f > 0:
                 kept = (kept, _pack_seconds(person))

@@ -30,6 +30,7 @@ __all__ = [
     "FrameSilhouettes",
     "expected",
     "joined",
+    "placed",
     "SECOND_INSIDE",
     "SECOND_MARGIN_PX",
     "SECOND_BETTER",
@@ -111,6 +112,20 @@ def joined(first: PersonData, second: PersonData) -> PersonData:
         [torch.cat([wide(first.valid[0]), wide(second.valid[0])])],
         [torch.cat([first.distance_maps[0], second.distance_maps[0]])],
         stack_cameras([first.camera, second.camera]),
+    )
+
+
+def placed(first: PersonData, rows: torch.Tensor, other: PersonData) -> PersonData:
+    """Person data (one posture): ``first``'s with its rows ``rows`` (n,) replaced by the n
+    rows of ``other`` (contours padded to the wider of the two; a row's data do not depend on
+    the others')."""
+    wide = _widening(first, other)
+    at = rows.to(first.contours[0].device)
+    return PersonData(
+        [wide(first.contours[0]).index_copy(0, at, wide(other.contours[0]))],
+        [wide(first.valid[0]).index_copy(0, at, wide(other.valid[0]))],
+        [first.distance_maps[0].index_copy(0, at, other.distance_maps[0])],
+        first.camera,
     )
 
 
