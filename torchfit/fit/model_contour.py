@@ -306,9 +306,10 @@ def _choose(item: tuple, sampler: EdgeSampler, size: tuple[int, int], tolerance:
     px, contour, valid = item
     w, h = size
     cand = np.flatnonzero(sampler.silhouette_edges(px))
+    fixed = fixed_points(px)
     # the outline inside the picture, off its frame (where the frame cuts the model, the
     # picture's edge is not the model's contour)
-    bpix = edge_outline(px, sampler.edges.numpy()[cand], sampler.faces.numpy(), (w, h))
+    bpix = edge_outline(px, sampler.edges.numpy()[cand], sampler.faces.numpy(), (w, h), fixed)
     bpix = bpix[~on_image_frame(bpix, w, h)]
     # the samples of the candidate edges only
     p = sampler.all_points(torch.from_numpy(px)[None], torch.from_numpy(cand))[0].numpy()
@@ -322,7 +323,7 @@ def _choose(item: tuple, sampler: EdgeSampler, size: tuple[int, int], tolerance:
     nearest = np.zeros(len(valid), np.int64)
     if len(on) and valid.any():
         nearest[valid] = cKDTree(p).query(contour[valid])[1]
-    return on, nearest, fixed_points(px)
+    return on, nearest, fixed
 
 
 def _selection(

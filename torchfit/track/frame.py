@@ -86,10 +86,9 @@ def solve_frame(
     layout = layout.for_options(options)  # the weights are this solve's (a restart's, ...)
     camera: Camera = person.camera
     x = layout.clip(x0)
-    limits = iterations
-    iterations = torch.zeros(x.shape[0], dtype=torch.long)
+    done = torch.zeros(x.shape[0], dtype=torch.long)  # LM iterations made, per row
     lm = LMOptions(
-        max_iter=options.iterations if limits is None else int(limits.max()),
+        max_iter=options.iterations if iterations is None else int(iterations.max()),
         fold_batch=False,
         min_diag=options.min_diag,
         initial_damping=options.initial_damping,
@@ -133,12 +132,12 @@ def solve_frame(
             lower=layout.lower,
             upper=layout.upper,
             indexed=True,
-            max_iter=limits,
+            max_iter=iterations,
         )
         x, cost, residual = res.x, res.cost, res.residual
-        iterations += res.n_iter.cpu().long()
+        done += res.n_iter.cpu().long()
     # the solver's last residual is the one at x: e_P leads it, already over sqrt(|C_P|), in
     # reference pixels
     e_p = residual[:, : person.contours[0].shape[1]]
     rms = (e_p * e_p).sum(1).sqrt()
-    return FrameResult(x=x, cost=cost, reference_rms=rms, iterations=iterations, image_scale=scale)
+    return FrameResult(x=x, cost=cost, reference_rms=rms, iterations=done, image_scale=scale)

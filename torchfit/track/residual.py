@@ -170,12 +170,9 @@ class _FrameResidual:
         """A kinematics pass of the template vertices ``vertex_index`` at the rows ``xr`` of
         every problem in order, from the last one made there (the solver's accepted trial
         point: a frame's next contour choice starts where its last solve ended), or None."""
-        last = self._last
-        if last is None or last[1].numel() != xr.shape[0] or not torch.equal(last[0], xr):
+        if not self._at_last(xr, torch.arange(xr.shape[0], device=xr.device)):
             return None
-        if not torch.equal(last[1], torch.arange(xr.shape[0], device=last[1].device)):
-            return None
-        return self.model.repose(last[2], self.scales, vertex_index)
+        return self.model.repose(self._last[2], self.scales, vertex_index)
 
     def _at_last(self, xr: torch.Tensor, index: torch.Tensor) -> bool:
         """Whether the last kinematics pass was made at the rows ``xr`` of problems ``index``."""

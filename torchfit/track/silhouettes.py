@@ -89,12 +89,13 @@ class FrameSilhouettes:
         second = self.second_data(cameras, options, dtype)
         if all(r or not bool(h) for r, h in zip(rows, self.has, strict=True)):
             return second  # a row without a second silhouette has the same data in both
-        return _rows_of(self.person, second, torch.tensor(rows))
+        take = torch.tensor(rows).nonzero().flatten()
+        return placed(self.person, take, second.subset(take))
 
 
-def _widening(first: PersonData, second: PersonData):
-    """Pads a (B, C, ...) tensor of one posture's contours to the wider of the two's."""
-    width = max(first.contours[0].shape[1], second.contours[0].shape[1])
+def _widening(*parts: PersonData):
+    """Pads a (B, C, ...) tensor of one posture's contours to the widest of the parts'."""
+    width = max(p.contours[0].shape[1] for p in parts)
 
     def wide(t: torch.Tensor) -> torch.Tensor:
         pad = [0, 0] * (t.dim() - 2) + [0, width - t.shape[1]]
@@ -103,15 +104,15 @@ def _widening(first: PersonData, second: PersonData):
     return wide
 
 
-def joined(first: PersonData, second: PersonData) -> PersonData:
-    """Person data (one posture) with the rows of ``first``, then those of ``second``
-    (contours padded to the wider of the two; a row's data do not depend on the others')."""
-    wide = _widening(first, second)
+def joined(*parts: PersonData) -> PersonData:
+    """Person data (one posture) with the rows of each part in turn (contours padded to the
+    widest; a row's data do not depend on the others')."""
+    wide = _widening(*parts)
     return PersonData(
-        [torch.cat([wide(first.contours[0]), wide(second.contours[0])])],
-        [torch.cat([wide(first.valid[0]), wide(second.valid[0])])],
-        [torch.cat([first.distance_maps[0], second.distance_maps[0]])],
-        stack_cameras([first.camera, second.camera]),
+        [torch.cat([wide(p.contours[0]) for p in parts])],
+        [torch.cat([wide(p.valid[0]) for p in parts])],
+        [torch.cat([p.distance_maps[0] for p in parts])],
+        stack_cameras([p.camera for p in parts]),
     )
 
 
@@ -125,20 +126,6 @@ def placed(first: PersonData, rows: torch.Tensor, other: PersonData) -> PersonDa
         [wide(first.contours[0]).index_copy(0, at, wide(other.contours[0]))],
         [wide(first.valid[0]).index_copy(0, at, wide(other.valid[0]))],
         [first.distance_maps[0].index_copy(0, at, other.distance_maps[0])],
-        first.camera,
-    )
-
-
-def _rows_of(first: PersonData, second: PersonData, take: torch.Tensor) -> PersonData:
-    """Person data (one posture) with the rows ``take`` (B,) bool from ``second``, the others
-    from ``first`` (contours padded to the wider of the two)."""
-    wide = _widening(first, second)
-    pick = take.to(first.contours[0].device)
-    rows = lambda a, b: torch.where(pick.view(-1, *[1] * (a.dim() - 1)), b, a)  # noqa: E731
-    return PersonData(
-        [rows(wide(first.contours[0]), wide(second.contours[0]))],
-        [rows(wide(first.valid[0]), wide(second.valid[0]))],
-        [rows(first.distance_maps[0], second.distance_maps[0])],
         first.camera,
     )
 

@@ -125,38 +125,22 @@ def _split(res: FrameResult, sizes: list[int]) -> list[FrameResult]:
     return out
 
 
-def _solve_from(model, scales, person, layout, rows, starts, options, sampler) -> list:
-    """Solve the rows ``rows`` (n,) of a frame (``person`` holds their n rows) once from each
-    start in ``starts`` (each (n, P), pulled towards itself), all in one batch (a frame's
-    solve costs little more for more rows); one :class:`FrameResult` per start."""
-    n, k = len(rows), len(starts)
-    every = torch.arange(n).repeat(k)
-    x0 = torch.cat(starts)
-    res = solve_frame(
-        model, scales[rows][every], person.subset(every), layout, x0, x0, options, sampler
-    )
-    return _split(res, [n] * k)
-
-
-def _solve_with(model, scales, person, layout, pred, options, sampler, trial=None):
-    """The frame's solve of every row from the prediction ``pred`` (B, P); with ``trial`` =
-    ``(rows, other, starts, more)``, in the same batch the rows ``rows`` (n,) solved to the
-    person data ``other`` (their n rows) once from each start in ``starts`` (each (n, P),
-    pulled towards itself) with ``more.iterations`` (the other options are the frame's): each
-    row's solve is the one it would have alone, the frame's rows stop at their own
-    iterations. The frame's :class:`FrameResult` and one per start."""
-    if trial is None:
-        return solve_frame(model, scales, person, layout, pred, pred, options, sampler), []
-    rows, other, starts, more = trial
-    b, n, k = pred.shape[0], len(rows), len(starts)
-    every = torch.arange(n).repeat(k)
-    x0 = torch.cat([pred, *starts])
-    limits = torch.tensor([options.iterations] * b + [more.iterations] * (n * k))
-    data = joined(person, other.subset(every))
-    sc = torch.cat([scales, scales[rows][every]])
-    res = solve_frame(model, sc, data, layout, x0, x0, options, sampler, limits)
-    first, *alts = _split(res, [b] + [n] * k)
-    return first, alts
+def _solve(model, layout, sampler, groups: list[tuple]) -> list[FrameResult]:
+    """Rows of a frame solved in one batch (a solve costs little more for more rows). Each
+    group ``(person, scales, start, options)`` holds n rows' person data, scales (n, S, 3) and
+    start (n, P), solved from the start and pulled towards it; its rows take its
+    ``options.iterations``, the other options are the first group's. A row's solve is the one
+    it would have alone. One :class:`FrameResult` per group."""
+    person, scales, x0, options = groups[0]
+    if len(groups) == 1:
+        return [solve_frame(model, scales, person, layout, x0, x0, options, sampler)]
+    person = joined(*(g[0] for g in groups))
+    scales = torch.cat([g[1] for g in groups])
+    x0 = torch.cat([g[2] for g in groups])
+    its = [g[3].iterations for g in groups for _ in range(len(g[2]))]
+    limits = None if len(set(its)) == 1 else torch.tensor(its)
+    res = solve_frame(model, scales, person, layout, x0, x0, options, sampler, limits)
+    return _split(res, [len(g[2]) for g in groups])
 
 
 def _median(values: list[float]) -> float:
@@ -245,7 +229,7 @@ def track(
             # adds, or else where a solve to it explains it better than the first's solve
             bridged = expected(model, scales, cameras, pred, second)
             person = second.chosen(bridged, cameras, options, model.dtype)
-        trial = None
+        trials = []  # solves to the second silhouettes: more rows of the frame's solve
         if second is not None:
             # the solve to the second silhouette: in a stretch of frames whose second one was
             # refused, every SECOND_TRIAL_EVERY-th (the frames of a stretch are alike)
@@ -264,9 +248,8 @@ def track(
                     straight = pred[idx].clone()
                     straight[:, legs] = 0.0
                     starts.append(straight)
-                trial = (idx, other, starts, recovery)
-        # the frame's solve, and those to the second silhouettes as more rows of its batch
-        res, alts = _solve_with(model, scales, person, layout, pred, options, sampler, trial)
+                trials = [(other, scales[idx], start, recovery) for start in starts]
+        res, *alts = _solve(model, layout, sampler, [(person, scales, pred, options), *trials])
         if alts:
             took = []
             for alt in alts:
@@ -302,7 +285,8 @@ def track(
                 raised[:, abduct] = math.radians(options.recover_arms_deg)
                 starts.append(raised)
             sub = person.subset(idx)
-            for alt in _solve_from(model, scales, sub, layout, idx, starts, recovery, sampler):
+            groups = [(sub, scales[idx], start, recovery) for start in starts]
+            for alt in _solve(model, layout, sampler, groups):
                 _keep_better(res, ref, idx, alt)
             for i in bad:
                 status[i] = "recovered" if float(ref[i]) <= limit[i] else "uncertain"

@@ -60,7 +60,11 @@ def render_fixed(fixed: np.ndarray, faces: np.ndarray, image_size: tuple[int, in
 
 
 def edge_outline(
-    pixels: np.ndarray, edges: np.ndarray, faces: np.ndarray, image_size: tuple[int, int]
+    pixels: np.ndarray,
+    edges: np.ndarray,
+    faces: np.ndarray,
+    image_size: tuple[int, int],
+    fixed: np.ndarray | None = None,
 ) -> np.ndarray:
     """The pixels (n, 2) int64 ``(u, v)`` of the outer outline of a projected mesh in the
     image.
@@ -80,21 +84,23 @@ def edge_outline(
         edges: (E, 2) vertex indices of the silhouette edges.
         faces: (F, 3) the mesh's triangles.
         image_size: ``(width, height)``.
+        fixed: :func:`fixed_points` of ``pixels``, where the caller has them.
     """
     import cv2
 
     w, h = image_size
     if not len(edges):
         return np.zeros((0, 2), np.int64)
+    fixed = fixed_points(pixels) if fixed is None else fixed
     used = pixels[np.asarray(edges).ravel()]  # the edges' box (a vertex may repeat)
     lo = np.floor(used.min(0)).astype(np.int64) - 1
     hi = np.ceil(used.max(0)).astype(np.int64) + 1
     if lo.min() < 0 or hi[0] > w - 1 or hi[1] > h - 1:
-        outlines = outer_outlines(render_silhouette(pixels, faces, image_size))
+        outlines = outer_outlines(render_fixed(fixed, faces, image_size))
         return (np.concatenate(outlines) if outlines else np.zeros((0, 2))).astype(np.int64)
     # the lines on the edges' box: one two-point polyline per edge, (E, 2, 2)
     canvas = np.zeros((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), np.uint8)
-    lines = fixed_points(pixels)[edges] - (lo << _SHIFT).astype(np.int32)
+    lines = fixed[edges] - (lo << _SHIFT).astype(np.int32)
     cv2.polylines(canvas, lines, False, 255, 1, cv2.LINE_8, _SHIFT)
     contours, _ = cv2.findContours(canvas, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     return np.concatenate([c[:, 0, :] for c in contours]).astype(np.int64) + lo
