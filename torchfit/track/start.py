@@ -35,8 +35,12 @@ _TURNS = tuple(math.radians(d) for d in (-45.0, -20.0, 0.0, 20.0, 45.0))
 #: the first frame's sized placement is kept when its contour RMS is this many times lower
 #: than the floor placement's.
 _OFF_FLOOR = 2.0
+#: the first frame's sized placement is solved only where it lies this far (metres) or more
+#: from the floor placement: nearer, the silhouette's height agrees with a body standing on
+#: the floor there, and the two start the same solve
+_SIZED_APART = 0.5
 #: the first frame's hypotheses solved together, at most (whole sequences' sets of them)
-_START_ROWS = 40
+_START_ROWS = 20
 
 
 def start_poses(
@@ -93,7 +97,7 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
     with torch.no_grad():
         z = model(scales, **{k: v for k, v in model.zeros(b).items() if k != "scales"})
         z = z.vertices[..., 2]
-    rows, fixed_z = [], []
+    rows, fixed_z, owner = [], [], []  # per hypothesis: its pose, its fixed height, its sequence
     for i in range(b):
         ys, xs = torch.nonzero(mask[i], as_tuple=True)
         cam = cameras[[i]]
@@ -110,7 +114,11 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
         depth = float(k[1, 1]) * height / max(bottom - top, 1.0)
         sized = c + depth * ray_directions(pixels[:, 1:], cam)[0, 0]
         sized[2] -= 0.5 * float(z[i].max() + z[i].min())
-        for place, pz in ((ground, None), (sized, float(sized[2]))):
+        places = [(ground, None)]
+        standing = torch.cat([ground[:2], -z[i].min()[None]])  # the root, standing there
+        if float((sized - standing).norm()) >= _SIZED_APART:
+            places.append((sized, float(sized[2])))
+        for place, pz in places:
             for turn in _TURNS:
                 x = torch.zeros(layout.num_params, dtype=dt)
                 x[:2] = place[:2]
@@ -118,9 +126,10 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
                 x[6:] = arms
                 rows.append(x)
                 fixed_z.append(pz)
+                owner.append(i)
     x0 = torch.stack(rows)
-    n = 2 * len(_TURNS)
-    sc = scales.repeat_interleave(n, 0)
+    owner = torch.tensor(owner)
+    sc = scales[owner]
     # the root height: standing, the model's lowest point on the floor
     with torch.no_grad():
         t, r, q = PoseLayout.split(x0)
@@ -128,7 +137,7 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
     for j, pz in enumerate(fixed_z):
         x0[j, 2] = -low[j] if pz is None else pz
     # the distance maps once per sequence, shared by its hypotheses
-    person = person.subset(torch.arange(b).repeat_interleave(n))
+    person = person.subset(owner)
     # held towards the neutral start by the tracker's own temporal weights and priors (the
     # layout's), the root at start_translation; free root and 0.5 px/rad on the joints gave
     # worse starts on 01_01 clips (mean joint error 182, 65, 140 mm against 83, 79, 114 mm)
@@ -138,22 +147,41 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
         rounds=3,
         temporal_translation=options.start_translation,
     )
-    # a few sequences' hypotheses at a time: a row's solve does not depend on the others, and
-    # past a few dozen rows the Jacobians outgrow the caches (16 sequences at once took 1.3 s
-    # a sequence, 4 at a time 0.9 s)
-    xs, rms = [], []
-    log.info("first frame: %d pose hypotheses for %d sequence(s)", b * n, b)
+    log.info("first frame: %d pose hypotheses for %d sequence(s)", len(rows), b)
     sampler = EdgeSampler(model.faces, options.samples_per_edge)  # once for every chunk
-    for rows in torch.arange(b * n).split(_START_ROWS // n * n or n):
-        data = person.subset(rows)
-        res = solve_frame(model, sc[rows], data, layout, x0[rows], x0[rows], opts, sampler)
+    # a few sequences' hypotheses at a time: a row's solve does not depend on the others, and
+    # past a few dozen rows the Jacobians outgrow the caches (eight sequences' 80 rows at
+    # once took 0.65 s a sequence, 20 at a time 0.33, as one sequence's alone)
+    xs, rms = [], []
+    for chunk in _chunks(owner):
+        res = solve_frame(
+            model, sc[chunk], person.subset(chunk), layout, x0[chunk], x0[chunk], opts, sampler
+        )
         xs.append(res.x)
         rms.append(res.reference_rms)
-    x, rms = torch.cat(xs), torch.cat(rms).reshape(b, 2, n // 2)
+    x, rms = torch.cat(xs), torch.cat(rms)
     # the floor placement unless the sized one explains the silhouette far better (someone
     # standing fits both, and their contours do not tell a lean or a depth apart)
-    stand, sized = rms.min(2).values.unbind(1)
-    use = (sized * _OFF_FLOOR < stand).long()
-    best = use * (n // 2) + rms[torch.arange(b), use].argmin(1)
-    at = torch.arange(b)
-    return x.reshape(b, n, -1)[at, best], rms.reshape(b, n)[at, best]
+    n = len(_TURNS)
+    best = []
+    for i in range(b):
+        first = int((owner == i).nonzero()[0])
+        stand = first + int(rms[first : first + n].argmin())
+        if first + n < len(owner) and int(owner[first + n]) == i:
+            sized = first + n + int(rms[first + n : first + 2 * n].argmin())
+            stand = sized if float(rms[sized]) * _OFF_FLOOR < float(rms[stand]) else stand
+        best.append(stand)
+    return x[best], rms[best]
+
+
+def _chunks(owner: torch.Tensor) -> list[torch.Tensor]:
+    """Hypothesis rows in chunks of whole sequences, at most :data:`_START_ROWS` rows each
+    (more where one sequence has more)."""
+    chunks, current = [], []
+    for i in owner.unique_consecutive().tolist():
+        mine = (owner == i).nonzero().flatten().tolist()
+        if current and len(current) + len(mine) > _START_ROWS:
+            chunks.append(torch.tensor(current))
+            current = []
+        current += mine
+    return chunks + [torch.tensor(current)]
