@@ -16,12 +16,15 @@ import argparse
 import json
 import logging
 import sys
+from pathlib import Path
 
-from tqdm import tqdm
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchfit.config import load_config
-from torchfit.errors import TorchfitError
-from torchfit.synth.options import SynthConfig
+from tqdm import tqdm  # noqa: E402
+
+from torchfit.config import load_config  # noqa: E402
+from torchfit.errors import TorchfitError  # noqa: E402
+from torchfit.synth.options import SynthConfig  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -31,11 +31,13 @@ import sys
 import time
 from pathlib import Path
 
-from tqdm import tqdm
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchfit.config import load_config
-from torchfit.errors import TorchfitError
-from torchfit.synth.generate import SynthConfig, make_subject
+from tqdm import tqdm  # noqa: E402
+
+from torchfit.config import load_config  # noqa: E402
+from torchfit.errors import TorchfitError  # noqa: E402
+from torchfit.synth.generate import SynthConfig, make_subject  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

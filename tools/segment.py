@@ -32,14 +32,16 @@ import csv
 import sys
 from pathlib import Path
 
-import torch
-from tqdm import tqdm
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchfit.config import Config, load_config
-from torchfit.errors import SegmentationError, TorchfitError
-from torchfit.eval.metrics import cdnet_counts, precision_recall_f
-from torchfit.image import fit_background, segment
-from torchfit.io import list_images, load_frames, read_image, read_mask, write_mask
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from torchfit.config import Config, load_config  # noqa: E402
+from torchfit.errors import SegmentationError, TorchfitError  # noqa: E402
+from torchfit.eval.metrics import cdnet_counts, precision_recall_f  # noqa: E402
+from torchfit.image import fit_background, segment  # noqa: E402
+from torchfit.io import list_images, load_frames, read_image, read_mask, write_mask  # noqa: E402
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

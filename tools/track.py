@@ -31,11 +31,13 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-from tqdm import tqdm
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchfit.config import load_config
-from torchfit.errors import (
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from torchfit.config import load_config  # noqa: E402
+from torchfit.errors import (  # noqa: E402
     ConfigError,
     DataError,
     OutputError,
