@@ -54,6 +54,7 @@ __all__ = [
     "BackgroundModel",
     "color_features",
     "fit_background",
+    "least_background_frames",
     "mahalanobis_distance",
 ]
 
@@ -190,6 +191,12 @@ class BackgroundModel:
         )
 
 
+def least_background_frames(options) -> int:
+    """The fewest background frames :func:`fit_background` accepts with these segmentation
+    options (``min_background_frames``, and two for a covariance)."""
+    return max(options.min_background_frames, 2)
+
+
 def fit_background(
     frames: torch.Tensor, options: SegmentationOptions | None = None
 ) -> BackgroundModel:
@@ -219,10 +226,11 @@ def fit_background(
         frames = frames.unsqueeze(0)
     _check_images("frames", frames, 2)
     n = frames.shape[1]
-    if n < max(options.min_background_frames, 2):
+    least = least_background_frames(options)
+    if n < least:
         raise SegmentationError(
-            f"frames: expected at least {max(options.min_background_frames, 2)} background "
-            f"frames (segmentation.min_background_frames), got {n}"
+            f"frames: expected at least {least} background frames "
+            f"(segmentation.min_background_frames), got {n}"
         )
     if options.regularization <= 0:
         raise ValueError(f"options.regularization must be > 0, got {options.regularization}")

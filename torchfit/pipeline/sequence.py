@@ -28,6 +28,7 @@ from torchfit.camera import Camera
 from torchfit.config.schema import SilhouetteSource
 from torchfit.errors import DataError, SegmentationError
 from torchfit.image import fit_background, segment
+from torchfit.image.background import least_background_frames
 from torchfit.image.chroma import key_colour, screen_frame
 from torchfit.image.segment import SegmentationResult, finish_silhouettes
 from torchfit.image.shadow import bridged
@@ -153,7 +154,7 @@ class SequenceSegmenter:
         if sequence.method == "masks":
             return
         if sequence.method == "background":
-            least = max(options.min_background_frames, 2)
+            least = least_background_frames(options)
             if len(sequence.background) < least:
                 raise SegmentationError(
                     f"{sequence.name}: {len(sequence.background)} background frames, expected "

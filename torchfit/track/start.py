@@ -99,7 +99,8 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
     with torch.no_grad():
         z = model(scales, **{k: v for k, v in model.zeros(b).items() if k != "scales"})
         z = z.vertices[..., 2]
-    rows, fixed_z, owner = [], [], []  # per hypothesis: its pose, its fixed height, its sequence
+    rows, fixed_z = [], []  # per hypothesis: its pose and its fixed height
+    counts = []  # per sequence, its hypotheses (the floor's, then the sized ones where any)
     for i in range(b):
         ys, xs = torch.nonzero(mask[i], as_tuple=True)
         cam = cameras[[i]]
@@ -128,9 +129,9 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
                 x[6:] = arms
                 rows.append(x)
                 fixed_z.append(pz)
-                owner.append(i)
+        counts.append(len(places) * len(_TURNS))
     x0 = torch.stack(rows)
-    owner = torch.tensor(owner)
+    owner = torch.arange(b).repeat_interleave(torch.tensor(counts))
     sc = scales[owner]
     # the root height: standing, the model's lowest point on the floor
     with torch.no_grad():
@@ -155,7 +156,7 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
     # past a few dozen rows the Jacobians outgrow the caches (eight sequences' 80 rows at
     # once took 0.65 s a sequence, 20 at a time 0.33, as one sequence's alone)
     xs, rms = [], []
-    for chunk in _chunks(owner):
+    for chunk in _chunks(counts):
         res = solve_frame(
             model, sc[chunk], person.subset(chunk), layout, x0[chunk], x0[chunk], opts, sampler
         )
@@ -164,27 +165,25 @@ def _best_start(model, scales, cameras, mask, layout, options, person, arms):
     x, rms = torch.cat(xs), torch.cat(rms)
     # the floor placement unless the sized one explains the silhouette far better (someone
     # standing fits both, and their contours do not tell a lean or a depth apart)
-    n = len(_TURNS)
-    best = []
-    for i in range(b):
-        mine = (owner == i).nonzero().flatten()  # the floor's hypotheses, then the sized ones
-        pick = int(mine[0]) + int(rms[mine[:n]].argmin())
-        if len(mine) > n:
-            sized = int(mine[n]) + int(rms[mine[n:]].argmin())
+    n, best, first = len(_TURNS), [], 0
+    for count in counts:
+        pick = first + int(rms[first : first + n].argmin())
+        if count > n:
+            sized = first + n + int(rms[first + n : first + count].argmin())
             if float(rms[sized]) * _OFF_FLOOR < float(rms[pick]):
                 pick = sized
         best.append(pick)
+        first += count
     return x[best], rms[best]
 
 
-def _chunks(owner: torch.Tensor) -> list[torch.Tensor]:
-    """Hypothesis rows in chunks of whole sequences, at most :data:`_START_ROWS` rows each
-    (more where one sequence has more)."""
-    chunks, current = [], []
-    for i in owner.unique_consecutive().tolist():
-        mine = (owner == i).nonzero().flatten().tolist()
-        if current and len(current) + len(mine) > _START_ROWS:
-            chunks.append(torch.tensor(current))
-            current = []
-        current += mine
-    return chunks + [torch.tensor(current)]
+def _chunks(counts: list[int]) -> list[torch.Tensor]:
+    """The hypothesis rows of sequences with ``counts`` rows each, in chunks of whole
+    sequences, at most :data:`_START_ROWS` rows each (more where one sequence has more)."""
+    chunks, start, size = [], 0, 0
+    for count in counts:
+        if size and size + count > _START_ROWS:
+            chunks.append(torch.arange(start, start + size))
+            start, size = start + size, 0
+        size += count
+    return chunks + [torch.arange(start, start + size)]
