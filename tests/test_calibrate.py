@@ -160,3 +160,8 @@ def test_tool_writes_a_loadable_camera_and_a_check_image(tmp_path):
     cmd[cmd.index("--floor") + 1] = str(tmp_path / "grey.png")
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path)
     assert done.returncode == 2 and "grey.png: the 9x6 board was not found" in done.stderr
+    # an unreadable floor image is bad input (exit 4), not a board the image lacks
+    (tmp_path / "broken.png").write_bytes(b"not a png")
+    cmd[cmd.index("--floor") + 1] = str(tmp_path / "broken.png")
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path)
+    assert done.returncode == 4 and "broken.png" in done.stderr, done.stderr

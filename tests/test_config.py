@@ -162,3 +162,24 @@ def test_configs_are_frozen_and_replaced_by_key():
     assert (new.run.resume, new.fit.batch_size, cfg.run.resume) == (False, 7, True)
     with pytest.raises(ConfigError, match="unknown key 'run.nope'"):
         replace_keys(cfg, {"run.nope": 1})
+
+
+def test_a_partial_prior_or_bends_section_keeps_the_fit_s_other_defaults(tmp_path):
+    """Setting one key of fit.prior or fit.bends leaves the others at the fit's defaults (the
+    population prior at 0.3, the posture prior at 0.5, the knee marks at 1.0), not at the
+    library's "off"."""
+    cfg = load_config(None, ["fit.prior.pose_sigma_deg=10", "fit.bends.shown_px=3"])
+    assert cfg.fit.prior.pose_sigma_deg == 10.0
+    assert cfg.fit.prior.weight == 0.3 and cfg.fit.prior.pose_weight == 0.5
+    assert cfg.fit.bends.weight == 1.0 and cfg.fit.bends.shown_px == 3.0
+    path = write(tmp_path, "fit:\n  prior:\n    height_tolerance_m: 0.01\n")
+    assert load_config(path).fit.prior.weight == 0.3
+
+
+@pytest.mark.parametrize(
+    ("key", "message"),
+    [("fit.batch_size=0", "fit.batch_size"), ("fit.stages=[]", "fit.stages")],
+)
+def test_a_fit_without_batches_or_stages_is_a_config_error(key, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [key])

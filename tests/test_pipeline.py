@@ -125,15 +125,41 @@ def test_fit_cli_config_errors(tmp_path):
     assert "not found" in proc.stderr
 
 
-def test_fit_cli_stops_on_a_posture_prior_joint_the_template_lacks(dataset, tmp_path):
+@pytest.mark.parametrize(
+    ("keys", "message"),
+    [
+        (
+            ["fit.prior.pose_weight=0.5", "fit.prior.pose_joints=[elbow_flex]"],
+            "fit.prior.pose_joints: ['elbow_flex'] name no joint",
+        ),
+        (["fit.prior.name=nope"], "fit.prior.name: unknown prior 'nope'"),
+        (["fit.free_joints={pose1: [l_elbow_flex]}"], "unknown joint DOFs ['l_elbow_flex']"),
+        (
+            ["fit.stages=[{name: a, scales: [legz], joints: true, root: true}]"],
+            "unknown scale group 'legz'",
+        ),
+    ],
+)
+def test_fit_cli_stops_on_a_name_the_template_or_prior_lacks(dataset, tmp_path, keys, message):
     out = tmp_path / "run"
-    proc = fit(
-        "--config", REPO / "configs/demo.yaml", "--data", dataset, "--out", out,
-        "--set", "fit.prior.pose_weight=0.5", "--set", "fit.prior.pose_joints=[elbow_flex]",
-    )  # fmt: skip
+    sets = [a for k in keys for a in ("--set", k)]
+    proc = fit("--config", REPO / "configs/demo.yaml", "--data", dataset, "--out", out, *sets)
     assert proc.returncode == 2, proc.stderr[-2000:]
-    assert "fit.prior.pose_joints: ['elbow_flex'] name no joint" in proc.stderr
+    assert message in proc.stderr
     assert not (out / "summary.csv").exists()  # stopped before any subject was fitted
+
+
+def test_invalid_subjects_take_no_valid_subject_s_place_in_a_batch(dataset):
+    """A valid subject's batch is the one it has without the invalid ones (its result does
+    not move with them, not even in the last digits)."""
+    from torchfit.io.dataset import load_dataset
+    from torchfit.pipeline.run import batches
+
+    subjects = load_dataset(dataset)  # alice, bob, broken (pose4.png missing)
+    assert [s.name for s in subjects] == ["alice", "bob", "broken"]
+    subjects = [subjects[0], subjects[2], subjects[1]]
+    grouped = batches(subjects, 2)
+    assert [[s.name for s in b] for b in grouped] == [["alice", "bob"], ["broken"]]
 
 
 def test_measure_stereo_cli_says_when_no_subject_has_a_pair(dataset, tmp_path):

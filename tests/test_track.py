@@ -9,7 +9,7 @@ import torch
 
 from torchfit.body.model import BodyModel
 from torchfit.camera import project_points
-from torchfit.errors import ConfigError
+from torchfit.errors import ConfigError, DataError
 from torchfit.fit.person import person_data_from_masks
 from torchfit.track import PoseLayout, TrackOptions, solve_frame, track
 from torchfit.viz.preview import nominal_view
@@ -626,7 +626,7 @@ def test_a_solve_uses_its_own_options_weights(model, camera):
 def test_track_tool_threads(tmp_path, capsys):
     """tools/track.py leaves one core to the reader that reads and segments the next frames
     (torch takes one thread fewer than the cores, at least 1), and rejects --threads 0 with
-    exit code 2 (as --readers 0)."""
+    exit code 2 (as --readers 0 and --frames 0 or below)."""
     from scripts import load_script
 
     from torchfit.pipeline.runtime import cpu_count
@@ -641,6 +641,11 @@ def test_track_tool_threads(tmp_path, capsys):
         tool.main([*base, "--model", str(tmp_path), "--readers", "0"])
     assert exc.value.code == 2
     assert "--readers must be >= 1" in capsys.readouterr().err
+    for frames in ("0", "-2"):
+        with pytest.raises(SystemExit) as exc:
+            tool.main([*base, "--model", str(tmp_path), "--frames", frames])
+        assert exc.value.code == 2
+        assert "--frames must be >= 1" in capsys.readouterr().err
     before = torch.get_num_threads()
     try:
         assert tool.main([*base, "--model", str(tmp_path / "no_fit")]) == 4  # no params.json
@@ -673,6 +678,35 @@ def test_track_tool_names_an_unreadable_frame_with_exit_code_4(model, camera, tm
         torch.set_num_threads(before)
     assert code == 4
     assert "000001.png" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("truth", "message"),
+    [
+        ("{not json", "cannot read the truth"),
+        ('{"fps": "fast", "joints_world": []}', "key 'fps' expects a positive number"),
+        ('{"joints_world": {"back": [0, 0, 1]}}', "key 'joints_world' expects a list of frames"),
+        ('{"joints_world": [{}]}', "1 truth frames for 3 frames to track"),
+        ("FRAMES_WITHOUT_AN_ANKLE", r"joints_world\[2\] expects \[x, y, z\] .* l_ankle"),
+    ],
+)
+def test_a_malformed_truth_is_named_before_tracking(model, camera, tmp_path, truth, message):
+    """truth.json is checked when the sequence is loaded (the frames not yet tracked): the
+    error names the file and the key."""
+    import json
+
+    from torchfit.measurements import JOINT_NAMES
+    from torchfit.pipeline.sequence import load_sequence
+
+    folder, _ = _write_sequence(model, camera, tmp_path)
+    if truth == "FRAMES_WITHOUT_AN_ANKLE":
+        joints = {n: [0.0, 0.0, 1.0] for n in JOINT_NAMES}
+        frames = [joints, joints, {k: v for k, v in joints.items() if k != "l_ankle"}]
+        truth = json.dumps({"fps": 25, "joints_world": frames})
+    (folder / "truth.json").write_text(truth)
+    with pytest.raises(DataError, match=message) as info:
+        load_sequence(folder)
+    assert str(folder / "truth.json") in str(info.value)
 
 
 def test_joint_errors_split_along_and_across_the_camera_ray():

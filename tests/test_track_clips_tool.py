@@ -1,7 +1,11 @@
 """benchmarks/track_clips.py: the clips it makes and the table it writes (no tracking here)."""
 
+import json
+
 import pytest
 from scripts import load_script
+
+from torchfit.measurements import JOINT_NAMES
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +68,8 @@ def test_true_silhouettes_are_a_sequence_of_its_own_masks(tool, tmp_path):
     for k in range(2):
         cv2.imwrite(str(seq / "frames" / f"{k:06d}.png"), np.zeros((48, 64, 3), np.uint8))
         cv2.imwrite(str(seq / "truth_masks" / f"{k:06d}.png"), np.zeros((48, 64), np.uint8))
-    (seq / "truth.json").write_text('{"fps": 30, "joints_world": [{}, {}]}')
+    joints = {n: [0.0, 0.0, 1.0] for n in JOINT_NAMES}
+    (seq / "truth.json").write_text(json.dumps({"fps": 30, "joints_world": [joints, joints]}))
     folder = tool.with_true_silhouettes(seq)
     assert tool.with_true_silhouettes(seq) == folder == tmp_path / "clip" / "true_silhouettes"
     loaded = load_sequence(folder)

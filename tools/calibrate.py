@@ -73,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
                 raise DataError(f"no images found in {args.images}")
         if not args.floor.is_file():
             raise DataError(f"floor image not found: {args.floor}")
+        for path in [*(images or []), args.floor]:  # unreadable: an input error, not a board's
+            read_image(path)
     except TorchfitError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 4

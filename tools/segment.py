@@ -80,6 +80,16 @@ def truth_path(truth_dir: Path, image: Path) -> Path | None:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
+        device = torch.device(args.device)
+    except RuntimeError as exc:
+        print(f"error: --device: {exc}", file=sys.stderr)
+        return 2
+    if device.type == "cuda" and not torch.cuda.is_available():
+        print(
+            f"error: --device: {args.device!r} but torch sees no CUDA device here", file=sys.stderr
+        )
+        return 2
+    try:
         cfg = load_config(args.config, args.set, schema=Config).segmentation
         frames, _ = load_frames(args.background)
         model = fit_background(frames.to(args.device), cfg)
@@ -91,7 +101,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: no images found in {args.images}", file=sys.stderr)
         return 2
     width, height = model.size
-    args.out.mkdir(parents=True, exist_ok=True)
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"error: cannot create {args.out}: {exc.strerror}", file=sys.stderr)
+        return 2
     status: dict[Path, tuple[str, str]] = {}
     totals: dict[str, int] = {}
     scored, missing_truth = 0, 0
@@ -131,16 +145,18 @@ def main(argv: list[str] | None = None) -> int:
                 if gt is None:
                     missing_truth += 1
                 else:
+                    shadow = gt.with_name(f"{gt.stem}_shadow.png")
                     try:
                         counts = cdnet_counts(mask, read_mask(gt))
+                        cast = None  # make_subjects.py's truth_masks/poseK_shadow.png
+                        if shadow.is_file():
+                            cast = read_mask(shadow, (width, height)) > 127
                     except TorchfitError as exc:
                         bar.write(f"truth {gt.name} not scored: {exc}")
                         missing_truth += 1
                     else:
                         scored += 1
-                        shadow = gt.with_name(f"{gt.stem}_shadow.png")
-                        if shadow.is_file():  # make_subjects.py's truth_masks/poseK_shadow.png
-                            cast = read_mask(shadow) > 127
+                        if cast is not None:
                             counts["shadow"] += int(cast.sum())
                             counts["shadow_as_background"] += int(
                                 (cast & ~mask.cpu().numpy().astype(bool)).sum()

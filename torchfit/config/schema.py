@@ -32,6 +32,8 @@ __all__ = [
     "SegmentationConfig",
     "SolverConfig",
     "StageConfig",
+    "FitPriorOptions",
+    "FitBendOptions",
     "FitConfig",
     "OutputConfig",
     "PartsConfig",
@@ -234,12 +236,21 @@ def _default_stages() -> tuple[StageOptions, ...]:
     )
 
 
-def _default_prior() -> PriorOptions:
-    return PriorOptions(weight=0.3, pose_weight=0.5)
+@dataclass(frozen=True)
+class FitPriorOptions(PriorOptions):
+    """:class:`PriorOptions` with the fit's defaults (the population prior at 0.3, the posture
+    prior at 0.5): a ``fit.prior`` section that sets some keys keeps these for the others."""
+
+    weight: float = 0.3
+    pose_weight: float = 0.5
 
 
-def _default_bends() -> BendOptions:
-    return BendOptions(weight=1.0)
+@dataclass(frozen=True)
+class FitBendOptions(BendOptions):
+    """:class:`BendOptions` with the fit's default weight (1.0): a ``fit.bends`` section that
+    sets some keys keeps it for the others."""
+
+    weight: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -288,8 +299,15 @@ class FitConfig(FitOptions):
     batch_size: int = 4
     max_contour_rms_px: float = 15.0
     reference_px_per_m: float | None = 210.0
-    prior: PriorOptions = field(default_factory=_default_prior)
-    bends: BendOptions = field(default_factory=_default_bends)
+    prior: FitPriorOptions = field(default_factory=FitPriorOptions)
+    bends: FitBendOptions = field(default_factory=FitBendOptions)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.batch_size < 1:
+            raise ConfigError(f"fit.batch_size: expected an integer >= 1, got {self.batch_size!r}")
+        if not self.stages:
+            raise ConfigError("fit.stages: expected at least one stage, got none")
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ from torchfit.config.loader import config_to_yaml
 from torchfit.config.schema import Config
 from torchfit.errors import ConfigError, DataError, OutputError, TorchfitError
 from torchfit.fit.bends import BendFit
-from torchfit.fit.prior import KnownFacts, PriorFit, load_prior, posture_prior_dofs
+from torchfit.fit.prior import KnownFacts, PriorFit, load_prior
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.io.dataset import Subject, load_dataset
 from torchfit.io.export import write_json
@@ -55,7 +55,7 @@ from torchfit.pipeline.outputs import (
 )
 from torchfit.pipeline.prepare import PreparedSubject, person_data, prepare_subject
 from torchfit.pipeline.runtime import apply_runtime, torch_dtype
-from torchfit.pipeline.stages import run_stages, start_params
+from torchfit.pipeline.stages import check_names, run_stages, start_params
 from torchfit.status import SubjectStatus
 
 __all__ = ["run", "fit_batch", "fit_subjects", "batches", "build_problem"]
@@ -242,10 +242,11 @@ def batches(subjects: list[Subject], size: int) -> list[list[Subject]]:
     images): the subjects grouped by their camera's image size, the groups in the order of
     their first subject and each cut into consecutive batches (a group's last may be smaller).
     A dataset of one image size gives consecutive batches in its own order; a subject's result
-    does not depend on its batch."""
+    does not depend on its batch. Invalid subjects (``subject.problems``) are batched apart,
+    so that they take no valid subject's place in a batch."""
     groups: dict[tuple[int, int] | None, list[Subject]] = {}
     for subject in subjects:
-        size_of = None if subject.camera is None else tuple(subject.camera.image_size)
+        size_of = None if not subject.ok else tuple(subject.camera.image_size)
         groups.setdefault(size_of, []).append(subject)
     return [
         group[start : start + size]
@@ -374,8 +375,7 @@ def run(
     # with Ray the workers fit: the driver's model (fingerprints only) stays on the CPU
     device = config.run.device if config.run.executor == "local" else "cpu"
     model = BodyModel(config.model.template, device=device, dtype=torch_dtype(config.run.dtype))
-    if config.fit.prior.pose_weight > 0:  # a name the template lacks stops the run, not each fit
-        posture_prior_dofs(model, config.fit.prior)
+    check_names(model, config)  # a name the template or a prior lacks stops the run
     run_fp = Fingerprint(config_digest(config), template_digest(model.template))
     done, fingerprints = _kept(subjects, run_fp, run_dir, config.run.resume)
     todo = [s for s in subjects if s.name not in done]

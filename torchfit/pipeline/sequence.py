@@ -18,6 +18,7 @@ The layout::
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +37,7 @@ from torchfit.io.camera import load_camera
 from torchfit.io.dataset import resolve_method
 from torchfit.io.images import list_images, load_frames, read_mask
 from torchfit.io.video import read_video, video_frame_count
+from torchfit.measurements import JOINT_NAMES
 from torchfit.pipeline.prepare import chroma_silhouettes
 
 __all__ = ["Sequence", "load_sequence", "SequenceSegmenter"]
@@ -74,6 +76,58 @@ class Sequence:
                 yield load_frames([path], self.camera.image_size)[0]
             return
         yield from read_video(self.video, self.camera.image_size, self.video_frames)
+
+
+def _load_truth(path: Path, count: int | None) -> tuple[list[dict] | None, float]:
+    """A sequence's ``truth.json``: its true joints per frame (None without ``joints_world``)
+    and its frame rate (25 without ``fps``), checked before any frame is tracked.
+
+    Args:
+        path: the file.
+        count: the frames to be tracked, that the truth must cover (None: not known, a video).
+
+    Raises:
+        DataError: naming the file and the key: not JSON, an ``fps`` that is not a positive
+        number, a ``joints_world`` that is not a list of frames with every evaluated joint
+        as ``[x, y, z]``, or fewer truth frames than frames to track.
+    """
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(f"{path}: cannot read the truth: {exc}") from None
+    if not isinstance(doc, dict):
+        raise DataError(f"{path}: expected a JSON object, got {type(doc).__name__}")
+    fps = doc.get("fps", 25.0)
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0 < fps < math.inf:
+        raise DataError(f"{path}: key 'fps' expects a positive number, got {fps!r}")
+    truth = doc.get("joints_world")
+    if truth is None:
+        return None, float(fps)
+    if not isinstance(truth, list):
+        raise DataError(
+            f"{path}: key 'joints_world' expects a list of frames, got {type(truth).__name__}"
+        )
+    if count is not None and len(truth) < count:
+        raise DataError(f"{path}: {len(truth)} truth frames for {count} frames to track")
+    names = [n for n in JOINT_NAMES if n != "head_top"]
+    for k, frame in enumerate(truth[:count]):
+        bad = [
+            n
+            for n in names
+            if not isinstance(frame, dict)
+            or not isinstance(frame.get(n), list)
+            or len(frame[n]) != 3
+            or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                for v in frame[n]
+            )
+        ]
+        if bad:
+            raise DataError(
+                f"{path}: joints_world[{k}] expects [x, y, z] in metres for each of "
+                f"{', '.join(bad)}"
+            )
+    return truth, float(fps)
 
 
 def load_sequence(
@@ -124,8 +178,7 @@ def load_sequence(
         frames, masks, count = frames[:max_frames], masks[:max_frames], min(count, max_frames)
     truth, fps = None, 25.0
     if (folder / "truth.json").is_file():
-        doc = json.loads((folder / "truth.json").read_text())
-        truth, fps = doc.get("joints_world"), float(doc.get("fps", fps))
+        truth, fps = _load_truth(folder / "truth.json", None if video is not None else count)
     path = Path(video) if video is not None else None
     return Sequence(
         folder.name, camera, background, frames, fps, truth, path, count if path else 0, method,

@@ -18,8 +18,12 @@ from dataclasses import asdict, dataclass, field, replace
 import torch
 
 from torchfit.body.measure import measure_model
+from torchfit.body.model import BodyModel
 from torchfit.config.schema import Config
 from torchfit.fit.bends import BendFit
+from torchfit.fit.layout import ParamLayout
+from torchfit.fit.pose import free_joints_for, nominal_angles
+from torchfit.fit.prior import load_prior, posture_prior_dofs
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.fit.stages import pose_contour_rms, pose_outliers, solve_stage
 from torchfit.pipeline.checks import (
@@ -31,7 +35,7 @@ from torchfit.pipeline.checks import (
 )
 from torchfit.solver import LMStatus
 
-__all__ = ["StageRecord", "start_params", "run_stages", "FAILED_SOLVER_STATUS"]
+__all__ = ["StageRecord", "start_params", "run_stages", "check_names", "FAILED_SOLVER_STATUS"]
 
 log = logging.getLogger(__name__)
 
@@ -301,3 +305,27 @@ def _template_ratios(fit: SilhouetteFit) -> dict[str, float]:
         m = measure_model(fit.model, fit.model.expand_scales(fit.layout.group_scales(start)))
     height = float(m["height_m"][0])
     return {k: float(v[0]) / height for k, v in m.items()}
+
+
+def check_names(model: BodyModel, config: Config) -> None:
+    """Stop the run, not each fit, at a name the template or the priors lack: the posture
+    prior's joints, the population prior, each posture's free joints, the stages' scales.
+
+    Raises:
+        ConfigError: naming the key.
+    """
+    if config.fit.prior.pose_weight > 0:
+        posture_prior_dofs(model, config.fit.prior)
+    if config.fit.prior.weight > 0:
+        load_prior(config.fit.prior.name)
+    poses = list(config.fit.poses)
+    layout = ParamLayout(
+        model.template.scale_groups,
+        model.dof_names,
+        model.joint_lower,
+        model.joint_upper,
+        nominal_angles(model, poses),
+        free_joints_for(list(model.dof_names), poses, config.fit.free_joints),
+    )
+    for stage in config.fit.stages:
+        layout.scale_indices(stage.scales)
