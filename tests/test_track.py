@@ -680,6 +680,43 @@ def test_track_tool_names_an_unreadable_frame_with_exit_code_4(model, camera, tm
     assert "000001.png" in capsys.readouterr().err
 
 
+def test_a_sequence_with_an_unreadable_frame_costs_the_others_nothing(
+    model, camera, tmp_path, capsys
+):
+    """Two sequences tracked together, the first with a frame that cannot be read: it is
+    named and left out (exit code 4), and the second's outputs are those it has alone."""
+    import json
+
+    from scripts import load_script
+
+    bad, _ = _write_sequence(model, camera, tmp_path / "a")
+    good, _ = _write_sequence(model, camera, tmp_path / "b")
+    (bad / "frames" / "000001.png").write_bytes(b"not a png")
+    fitted = tmp_path / "fit"
+    fitted.mkdir()
+    scales = {s: [1.0, 1.0, 1.0] for s in model.template.segments}
+    (fitted / "params.json").write_text(
+        json.dumps({"template": "mpeg4_full", "segment_scales": scales})
+    )
+    tool = load_script("tools/track.py")
+    argv = ["--config", "configs/track.yaml", "--model", str(fitted), "--threads", "1"]
+    before = torch.get_num_threads()
+    try:
+        both = [*argv, "--sequence", str(bad), "--sequence", str(good), "--ahead", "process"]
+        code = tool.main([*both, "--out", str(tmp_path / "both")])
+        err = capsys.readouterr().err
+        alone = tool.main([*argv, "--sequence", str(good), "--out", str(tmp_path / "alone")])
+    finally:
+        torch.set_num_threads(before)
+    assert code == 4
+    assert "000001.png" in err and str(bad) in err
+    assert not (tmp_path / "both" / "00_seq").exists()
+    assert alone == 0
+    for name in ("joints_world.json", "motion.bvh"):
+        written = (tmp_path / "both" / "01_seq" / name).read_bytes()
+        assert written == (tmp_path / "alone" / name).read_bytes(), name
+
+
 @pytest.mark.parametrize(
     ("truth", "message"),
     [

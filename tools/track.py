@@ -18,7 +18,9 @@ Exit codes: 0 ok, 1 a sequence lost frames (status ``uncertain``), 2 bad argumen
 (also a chroma key with neither ``segmentation.chroma_key.key`` nor background frames), 3 output
 not writable, 4 model or sequence missing or unreadable (also a frame or mask found unreadable
 or of another size while tracking, too few background frames, or a chroma key's background
-frames that show no screen).
+frames that show no screen). A sequence found unreadable while tracking is named and left out:
+the others are tracked again without it (as they would be alone) and written, and the exit
+code is 4.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from torchfit.errors import (  # noqa: E402
     DataError,
     OutputError,
     SegmentationError,
+    SequenceError,
     TorchfitError,
 )
 
@@ -124,7 +127,6 @@ def main(argv: list[str] | None = None) -> int:
         load_fitted,
         load_sequence,
         skeleton_scales,
-        track_sequences,
     )
 
     try:
@@ -159,22 +161,23 @@ def main(argv: list[str] | None = None) -> int:
         return 4
     out = Path(args.out)
     outs = [out] if len(seqs) == 1 else [out / f"{k:02d}_{s.name}" for k, s in enumerate(seqs)]
+    live = list(range(len(seqs)))  # the sequences tracked; one that fails is left out
+    failed: dict[int, str] = {}
+    summaries: list[dict] = []
     try:
         out.mkdir(parents=True, exist_ok=True)
         t0, c0 = time.perf_counter(), _cpu_seconds()
         with TensorBoardCallback(out / "tb", "track") as tb:
-            summaries = track_sequences(
-                model,
-                scale_t,
-                seqs,
-                outs,
-                config,
-                tb,
-                progress=lambda it: tqdm(it, desc="frames", total=max(s.num_frames for s in seqs)),
-                overlays=args.overlays,
-                ahead=ahead,
-                readers=args.readers or (1 if ahead == "none" else min(len(seqs), cpu_count())),
-            )
+            while live:
+                try:
+                    summaries = _track(args, config, model, scale_t, seqs, outs, live, tb, ahead)
+                    break
+                except SequenceError as exc:
+                    # nothing was written yet: the others are tracked again without it,
+                    # as they would be alone
+                    k = live.pop(exc.index)
+                    failed[k] = str(exc)
+                    print(f"error: {seqs[k].name} ({args.sequence[k]}): {exc}", file=sys.stderr)
         wall, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
     except OutputError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -183,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: cannot write {out}: {exc}", file=sys.stderr)
         return 3
     except (DataError, SegmentationError) as exc:  # a frame, mask or background image that
-        # cannot be read or used (too few, another size, a chroma key's frames with no screen)
+        # cannot be used, not a single sequence's (the start of the first frames)
         print(f"error: {exc}", file=sys.stderr)
         return 4
     except ConfigError as exc:  # a chroma key with neither a key colour nor background frames
@@ -211,9 +214,33 @@ def main(argv: list[str] | None = None) -> int:
         "sequences": [
             {k: v for k, v in s.items() if k not in ("per_frame_mm",)} for s in summaries
         ],
+        "failed": [{"sequence": args.sequence[k], "error": e} for k, e in failed.items()],
     }
     print(json.dumps(report, indent=1))
+    if failed:
+        return 4
     return 1 if any(s["status"]["uncertain"] for s in summaries) else 0
+
+
+def _track(args, config, model, scales, seqs, outs, live, tb, ahead) -> list[dict]:
+    """:func:`track_sequences` of the sequences ``live`` (positions in ``seqs``)."""
+    from torchfit.pipeline.runtime import cpu_count
+    from torchfit.pipeline.track import track_sequences
+
+    chosen = [seqs[k] for k in live]
+    total = max(s.num_frames for s in chosen)
+    return track_sequences(
+        model,
+        scales,
+        chosen,
+        [outs[k] for k in live],
+        config,
+        tb,
+        progress=lambda it: tqdm(it, desc="frames", total=total),
+        overlays=args.overlays,
+        ahead=ahead,
+        readers=args.readers or (1 if ahead == "none" else min(len(chosen), cpu_count())),
+    )
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ __all__ = [
     "CameraError",
     "ModelError",
     "SegmentationError",
+    "SequenceError",
     "OutputError",
     "check_shape",
 ]
@@ -49,6 +50,19 @@ class ModelError(TorchfitError):
 
 class SegmentationError(TorchfitError):
     """Segmentation failed for an image (no person found, size mismatch, …)."""
+
+
+class SequenceError(DataError):
+    """One of the sequences tracked together cannot be read or segmented (a frame or mask
+    unreadable or of another size, too few background frames, ...): ``index`` is its position
+    among them, the message is the error's. The others are not at fault."""
+
+    def __init__(self, index: int, message: str) -> None:
+        super().__init__(message)
+        self.index = index
+
+    def __reduce__(self):  # pickled as it was made (a reader process raises it)
+        return type(self), (self.index, str(self))
 
 
 class OutputError(TorchfitError):

@@ -36,7 +36,7 @@ from torchfit.camera import (
     world_to_camera,
 )
 from torchfit.config.schema import SilhouetteSource
-from torchfit.errors import DataError
+from torchfit.errors import DataError, SegmentationError, SequenceError
 from torchfit.image import pack_mask, unpack_mask
 from torchfit.io.bvh import write_bvh
 from torchfit.io.export import write_json
@@ -112,15 +112,23 @@ def load_fitted(folder: str | Path) -> FittedModel:
     return FittedModel(template, scales, str(doc.get("status", "ok")), str(doc.get("message", "")))
 
 
-def _row_masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter], n: int):
+def _row_masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter], n: int, ids: list[int]):
     """For ``n`` frames, the rows' (silhouette, second silhouette or None) of these sequences
-    (:meth:`SequenceSegmenter.segmented`); a finished sequence repeats its last frame."""
+    (:meth:`SequenceSegmenter.segmented`); a finished sequence repeats its last frame.
+
+    Raises:
+        SequenceError: a sequence that cannot be read or segmented, with its ``ids`` entry
+            (its position among all the sequences tracked).
+    """
     sources = [g.segmented() for g in segmenters]
     last: list[tuple | None] = [None] * len(seqs)
     for f in range(n):
         for i, s in enumerate(seqs):
             if f < s.num_frames:
-                last[i] = next(sources[i])
+                try:
+                    last[i] = next(sources[i])
+                except (DataError, SegmentationError) as exc:
+                    raise SequenceError(ids[i], str(exc)) from None
         yield list(last)
 
 
@@ -132,12 +140,12 @@ def _masks(seqs: list[Sequence], segmenters: list[SequenceSegmenter], readers: i
     not depend on the others, so they are the same either way."""
     n = max(s.num_frames for s in seqs)
     if readers <= 1:
-        groups = [_row_masks(seqs, segmenters, n)]
+        groups = [_row_masks(seqs, segmenters, n, list(range(len(seqs))))]
     else:
         parts = [p.tolist() for p in np.array_split(np.arange(len(seqs)), readers)]
         groups = [
             prefetch_process(
-                _row_masks, [seqs[i] for i in p], [segmenters[i] for i in p], n, threads=1
+                _row_masks, [seqs[i] for i in p], [segmenters[i] for i in p], n, p, threads=1
             )
             for p in parts
         ]
@@ -240,6 +248,11 @@ def track_sequences(
 
     Returns:
         Per sequence a summary (frames, statuses, ms per frame, errors with a truth).
+
+    Raises:
+        SequenceError: a sequence that cannot be read or segmented (its position in
+            ``sequences``), before any output is written; tracked without it, the others
+            give what they give alone.
     """
     b = len(sequences)
     if scales.dim() == 2:
