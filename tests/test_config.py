@@ -183,3 +183,23 @@ def test_a_partial_prior_or_bends_section_keeps_the_fit_s_other_defaults(tmp_pat
 def test_a_fit_without_batches_or_stages_is_a_config_error(key, message):
     with pytest.raises(ConfigError, match=message):
         load_config(None, [key])
+
+
+@pytest.mark.parametrize(
+    ("key", "message"),
+    [
+        ("segmentation.threshold=-5", "segmentation.threshold: expected a number > 0"),
+        ("segmentation.close_kernel=4", "segmentation.close_kernel: expected an odd number"),
+        ("segmentation.open_kernel=-1", "segmentation.open_kernel: expected an odd number"),
+        ("segmentation.shadow_ratio=[0.5, 0.2]", "segmentation.shadow_ratio: expected"),
+        ("segmentation.gamma=2", r"segmentation.gamma: expected a number in \[0, 1\]"),
+        ("fit.translation_max_m=-1", "fit.translation_max_m: expected a number >= 0"),
+        ("fit.contour_stride=0", "fit.contour_stride: expected a number >= 1"),
+    ],
+)
+def test_out_of_range_numbers_are_config_errors_naming_the_key(key, message):
+    """A value no segmentation or fit can use stops at the config (exit code 2 in the tools)
+    instead of failing every subject or changing the result unnoticed."""
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [key])
+    load_config(None, ["segmentation.close_kernel=1", "segmentation.open_kernel=0"])  # skipped

@@ -87,6 +87,15 @@ def test_mask_of_the_wrong_size_is_named(tmp_path, demo_masks):
         segment_subject(subject, Config().segmentation)
 
 
+def test_a_mask_of_ones_and_zeros_is_named_with_the_rule(tmp_path, demo_masks):
+    """A mask stored as 0 and 1 (no pixel above 127) is named, with what a mask must be,
+    instead of "no person found"."""
+    folder = _with_masks(tmp_path, demo_masks)
+    cv2.imwrite(str(folder / "masks" / "pose3.png"), demo_masks[2].numpy().astype(np.uint8))
+    with pytest.raises(DataError, match=r"pose3.png: no pixel above 127 \(its values are 0..1\)"):
+        segment_subject(load_subject(folder), Config().segmentation)
+
+
 def test_masks_enter_the_inputs_digest(tmp_path, demo_masks):
     folder = _with_masks(tmp_path, demo_masks)
     before = inputs_digest(load_subject(folder))

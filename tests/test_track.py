@@ -717,6 +717,17 @@ def test_a_sequence_with_an_unreadable_frame_costs_the_others_nothing(
         assert written == (tmp_path / "alone" / name).read_bytes(), name
 
 
+def test_a_frame_missing_from_the_numbering_is_named(model, camera, tmp_path):
+    """frames/000000.png, 000002.png: the missing 000001 is named when the sequence is loaded
+    (tracked on, every later frame would meet another frame's truth)."""
+    from torchfit.pipeline.sequence import load_sequence
+
+    folder, _ = _write_sequence(model, camera, tmp_path)
+    (folder / "frames" / "000001.png").unlink()
+    with pytest.raises(DataError, match="frame 000001 is missing"):
+        load_sequence(folder)
+
+
 @pytest.mark.parametrize(
     ("truth", "message"),
     [

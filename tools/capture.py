@@ -275,10 +275,12 @@ def main(argv: list[str] | None = None) -> int:
             )
     if result.missing:
         names = ", ".join(f"pose{k} ({POSTURE_NAMES[k - 1]})" for k in result.missing)
+        found = len(POSTURE_NAMES) - len(result.missing)
+        written = f"the others are written to {args.out}" if found else "no posture was found"
         print(
             f"error: posture(s) not found in the video: {names} (no still stretch between "
             f"the neighbouring postures matches with a score of at least {args.min_score}); "
-            f"the others are written to {args.out}",
+            f"{written}",
             file=sys.stderr,
         )
         return 1

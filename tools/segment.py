@@ -187,7 +187,10 @@ def main(argv: list[str] | None = None) -> int:
                 frac = totals["shadow_as_background"] / totals["shadow"]
                 print(f"cast-shadow pixels kept as background: {frac:.4f} of {totals['shadow']}")
         else:
-            print(f"no ground truth found in {args.truth} for these images")
+            print(
+                f"no ground truth scored in {args.truth} for these images ({missing_truth} "
+                "without one that could be read)"
+            )
     return 1 if failed else 0
 
 

@@ -21,6 +21,7 @@ __all__ = [
     "SequenceError",
     "OutputError",
     "check_shape",
+    "yaml_problem",
 ]
 
 
@@ -91,3 +92,14 @@ def check_shape(name: str, tensor: torch.Tensor, shape: Sequence[int | str | Non
         isinstance(s, int) and tensor.shape[i] != s for i, s in enumerate(shape)
     ):
         raise ShapeError(f"{name}: expected shape {pattern}, got {tuple(tensor.shape)}")
+
+
+def yaml_problem(exc: Exception) -> str:
+    """A YAML parser's error in one line: what is wrong and where (``line L, column C``)."""
+    problem = getattr(exc, "problem", None)
+    mark = getattr(exc, "problem_mark", None)
+    if problem is None:
+        return " ".join(str(exc).split())
+    context = getattr(exc, "context", None)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    return f"{problem}{where}" + (f" ({context})" if context else "")

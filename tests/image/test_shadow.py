@@ -105,6 +105,5 @@ def test_shadow_test_leaves_unshadowed_scene_alone_and_checks_input() -> None:
         shadow_mask(model, image, (0.9, 0.5))
     with pytest.raises(SegmentationError, match="expected size"):
         shadow_mask(model, image[..., :40])
-    bad = SegmentationOptions(shadow_test=True, shadow_ratio=(0.5,))
-    with pytest.raises(ConfigError, match="shadow_ratio"):
-        segment(image, model, bad)
+    with pytest.raises(ConfigError, match="shadow_ratio"):  # when the options are made
+        SegmentationOptions(shadow_test=True, shadow_ratio=(0.5,))

@@ -30,7 +30,7 @@ import yaml
 from pydantic import ConfigDict, TypeAdapter, ValidationError
 
 from torchfit.config.schema import Config
-from torchfit.errors import ConfigError
+from torchfit.errors import ConfigError, yaml_problem
 
 __all__ = [
     "load_config",
@@ -291,7 +291,7 @@ def load_config(
         try:
             data = parse_yaml(path.read_text()) or {}
         except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: invalid YAML: {exc}") from exc
+            raise ConfigError(f"{path}: invalid YAML: {yaml_problem(exc)}") from exc
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: the top level must be a mapping, got {type(data).__name__}")
         _absolute_paths(data, path.parent)

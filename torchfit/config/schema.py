@@ -170,6 +170,7 @@ class SegmentationConfig(SilhouetteSource):
     floor_retry_band: float = 0.15
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.floor_reach_m is not None and not (
             math.isfinite(self.floor_reach_m) and self.floor_reach_m > 0
         ):

@@ -88,6 +88,14 @@ class FitOptions:
         rho = self.pixel_noise_ratio
         if rho is not None and not (math.isfinite(rho) and rho >= 0):
             raise ConfigError(f"fit.pixel_noise_ratio: expected a number >= 0 or null, got {rho!r}")
+        for name, low in _LOWEST.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (math.isfinite(value) and value >= low):
+                raise ConfigError(f"fit.{name}: expected a number >= {low}, got {value!r}")
+        if self.pose_outlier_k is not None and not self.pose_outlier_k > 0:
+            raise ConfigError(
+                f"fit.pose_outlier_k: expected a number > 0 or null, got {self.pose_outlier_k!r}"
+            )
         poses = list(self.poses)
         if not poses or len(set(poses)) != len(poses) or not set(poses) <= set(range(1, 7)):
             raise ConfigError(f"fit.poses: expected distinct postures from 1..6, got {poses}")
@@ -101,6 +109,20 @@ class FitOptions:
                 f"fit.pose_outlier_weight: expected a number in (0, 1], got "
                 f"{self.pose_outlier_weight!r}"
             )
+
+
+#: the numeric options' least values (a count at least 1, an interval or a margin at least 0)
+_LOWEST = {
+    "translation_max_m": 0,
+    "yaw_max_deg": 0,
+    "tilt_max_deg": 0,
+    "barrier_weight": 0,
+    "samples_per_edge": 1,
+    "contour_tolerance_px": 0,
+    "contour_stride": 1,
+    "shadow_margin_px": 0,
+    "pose_outlier_min_px": 0,
+}
 
 
 def pixels_per_metre(camera: Camera) -> torch.Tensor:

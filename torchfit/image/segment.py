@@ -116,6 +116,36 @@ class SegmentationOptions:
     # minute to compile the first time, cached afterwards; several times faster per frame)
     compile: bool = False
 
+    def __post_init__(self) -> None:
+        """Raise :class:`ConfigError` naming the first out-of-range key (a config error stops
+        a run before anything is segmented, not each subject)."""
+
+        def bad(name: str, expected: str) -> ConfigError:
+            return ConfigError(
+                f"segmentation.{name}: expected {expected}, got {getattr(self, name)!r}"
+            )
+
+        for name in ("threshold", "shadow_window", "min_background_frames"):
+            if not getattr(self, name) > 0:
+                raise bad(name, "a number > 0")
+        for name in ("regularization", "edge_width", "edge_separation", "shadow_noise"):
+            if not getattr(self, name) >= 0:
+                raise bad(name, "a number >= 0")
+        for name in ("gamma", "shadow_flat_band", "shadow_band", "shadow_texture"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise bad(name, "a number in [0, 1]")
+        for name in ("open_kernel", "close_kernel"):
+            k = getattr(self, name)
+            if k < 0 or (k > 1 and k % 2 == 0):
+                raise bad(name, "an odd number of pixels (0 or 1 skips the step)")
+        if self.shadow_window % 2 == 0:
+            raise bad("shadow_window", "an odd number of pixels")
+        ratio = tuple(self.shadow_ratio)
+        if len(ratio) != 2 or not 0.0 < ratio[0] <= ratio[1]:
+            raise bad("shadow_ratio", "[low, high] with 0 < low <= high")
+        if self.max_hole_area is not None and not 0.0 <= self.max_hole_area <= 1.0:
+            raise bad("max_hole_area", "a fraction in [0, 1] or null")
+
 
 def clean_mask(
     masks: torch.Tensor,

@@ -10,7 +10,7 @@ import torch
 import yaml
 
 from torchfit.camera import ROTATION_TOLERANCE, Camera
-from torchfit.errors import CameraError
+from torchfit.errors import CameraError, yaml_problem
 from torchfit.io.files import write_atomic
 
 __all__ = [
@@ -131,7 +131,7 @@ def _read_yaml(path: Path) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise CameraError(f"cannot read {path}: {exc}") from None
     except yaml.YAMLError as exc:
-        raise CameraError(f"{path}: invalid YAML: {exc}") from exc
+        raise CameraError(f"{path}: invalid YAML: {yaml_problem(exc)}") from exc
 
 
 def _dump(data: dict) -> str:

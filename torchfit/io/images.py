@@ -32,6 +32,7 @@ __all__ = [
     "list_images",
     "read_image",
     "read_mask",
+    "read_silhouette",
     "write_mask",
     "write_image",
     "load_frames",
@@ -152,6 +153,23 @@ def read_mask(path: str | Path, size: tuple[int, int] | None = None) -> np.ndarr
             f"{size[0]}x{size[1]}"
         )
     return np.ascontiguousarray(img)
+
+
+def read_silhouette(path: str | Path, size: tuple[int, int] | None = None) -> np.ndarray:
+    """A user's silhouette mask (``masks/``) as ``(H, W)`` bool: above 127 is the person.
+
+    Raises:
+        DataError: as :func:`read_mask`, and for a mask with no pixel above 127 but some above
+        0 (stored as 0 and 1, say, where 255 is the person), naming the rule.
+    """
+    mask = read_mask(path, size)
+    top = int(mask.max())
+    if 0 < top <= 127:
+        raise DataError(
+            f"mask {path}: no pixel above 127 (its values are 0..{top}); a mask is 8-bit, "
+            "above 127 the person (255 and 0, not 1 and 0)"
+        )
+    return mask > 127
 
 
 def write_mask(path: str | Path, mask: np.ndarray | torch.Tensor) -> None:

@@ -8,6 +8,7 @@ from typing import Any
 
 import yaml
 
+from torchfit.errors import yaml_problem
 from torchfit.measurements import JOINT_NAMES, MEASUREMENT_KEYS
 
 __all__ = [
@@ -126,7 +127,7 @@ def load_facts(path: Path, problems: list[str]) -> dict:
     try:
         data = yaml.safe_load(path.read_text())
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        problems.append(f"{path}: invalid YAML: {str(exc).splitlines()[0]}")
+        problems.append(f"{path}: invalid YAML: {yaml_problem(exc)}")
         return {}
     found = validate_facts({} if data is None else data, str(path))
     problems.extend(found)

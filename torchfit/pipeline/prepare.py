@@ -25,7 +25,7 @@ from torchfit.image.chroma import ChromaKeyOptions, chroma_key, despill, key_col
 from torchfit.image.plausibility import cut_borders, implausible
 from torchfit.image.segment import SegmentationOptions, clean_mask, segment
 from torchfit.io.dataset import Subject
-from torchfit.io.images import load_frames, read_mask
+from torchfit.io.images import load_frames, read_silhouette
 
 __all__ = [
     "PreparedSubject",
@@ -300,12 +300,13 @@ def read_masks(subject: Subject) -> torch.Tensor:
 
     Raises:
         DataError: a mask missing, unreadable, not 8-bit single-channel, or not the size of
-        ``camera.yaml``'s ``image_size``.
+        ``camera.yaml``'s ``image_size``; or one with no pixel above 127 but some above 0
+        (a mask stored as 0 and 1, say, where 255 is the person).
     """
     if not subject.masks:
         raise DataError(f"{subject.folder / 'masks'}: no masks/ folder")
     size = subject.camera.image_size
-    return torch.from_numpy(np.stack([read_mask(p, size) > 127 for p in subject.masks]))
+    return torch.from_numpy(np.stack([read_silhouette(p, size) for p in subject.masks]))
 
 
 def _chroma_key(

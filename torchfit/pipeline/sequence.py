@@ -35,7 +35,7 @@ from torchfit.image.segment import SegmentationResult, finish_silhouettes
 from torchfit.image.shadow import bridged
 from torchfit.io.camera import load_camera
 from torchfit.io.dataset import resolve_method
-from torchfit.io.images import list_images, load_frames, read_mask
+from torchfit.io.images import list_images, load_frames, read_mask, read_silhouette
 from torchfit.io.video import read_video, video_frame_count
 from torchfit.measurements import JOINT_NAMES
 from torchfit.pipeline.prepare import chroma_silhouettes
@@ -130,6 +130,25 @@ def _load_truth(path: Path, count: int | None) -> tuple[list[dict] | None, float
     return truth, float(fps)
 
 
+def _check_numbering(frames: list[Path]) -> None:
+    """Frames named by their number (``000000.png`` ...) must number every frame: a gap would
+    pair each later frame with the truth of another and the tracker's prediction with a
+    motion twice as fast.
+
+    Raises:
+        DataError: naming the first missing number (or one out of the names' order).
+    """
+    if not frames or not all(p.stem.isdigit() for p in frames):
+        return
+    first = int(frames[0].stem)
+    for k, path in enumerate(frames):
+        if int(path.stem) != first + k:
+            raise DataError(
+                f"{path.parent}: frame {first + k:06d} is missing (the frames are numbered "
+                f"from {frames[0].name}; {path.name} follows {frames[k - 1].name})"
+            )
+
+
 def load_sequence(
     folder: str | Path,
     max_frames: int | None = None,
@@ -146,8 +165,9 @@ def load_sequence(
 
     Raises:
         DataError: a part is missing (``background/`` for background subtraction, ``masks/``
-        with ``masks``, the frames), the masks do not number the frames or the first is not
-        the camera's size, the video cannot be read, or an unknown ``method``.
+        with ``masks``, the frames), frames named by number with one missing, the masks do
+        not number the frames or the first is not the camera's size, the video cannot be
+        read, or an unknown ``method``.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -163,6 +183,7 @@ def load_sequence(
             f"{folder}: needs background/*.png for background subtraction (or masks/ with "
             "segmentation.method: masks or auto)"
         )
+    _check_numbering(frames)
     count = len(frames)
     if video is not None:
         count = video_frame_count(video)
@@ -250,7 +271,7 @@ class SequenceSegmenter:
         seq = self.prepare().sequence
         if seq.method == "masks":
             for path in seq.masks[: seq.num_frames]:
-                yield torch.from_numpy(read_mask(path, seq.camera.image_size) > 127), None
+                yield torch.from_numpy(read_silhouette(path, seq.camera.image_size)), None
             return
         for image in seq.images():
             if seq.method == "chroma_key":
