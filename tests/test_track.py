@@ -365,6 +365,38 @@ def test_sequences_read_by_several_processes_track_as_by_one(model, camera, tmp_
     assert joints[1][0] == joints[1][2] and joints[1][0] != joints[1][1]  # the short one
 
 
+def test_different_sequences_tracked_together_track_as_alone(model, camera, tmp_path):
+    """Two sequences of different motions (the left arm raised, the right elbow bent) tracked
+    together with the shipped options, the first frames' starts included: each one's joints
+    and motion are byte-identical to it tracked alone (every problem's damped system is
+    factored and solved as it is alone: torchfit.solver.normal.cholesky_each)."""
+    import cv2
+
+    from torchfit.pipeline.track import TrackConfig, load_sequence, track_sequences
+
+    arm, _ = _write_sequence(model, camera, tmp_path)
+    rng = np.random.default_rng(1)
+    bg = (60 + rng.integers(0, 3, (SIZE[1], SIZE[0], 3))).astype(np.uint8)
+    elbow = _empty_sequence(tmp_path / "elbow", camera, bg)
+    for k, m in enumerate(_three_frames(model, camera, "r_elbow_flexion", 0.4, 0.25)[1]):
+        frame = bg.copy()
+        frame[m] = (90, 160, 210)
+        cv2.imwrite(str(elbow / "frames" / f"{k:06d}.png"), frame)
+    cfg = TrackConfig()
+    scales = torch.ones(model.num_segments, 3, dtype=torch.float64)
+    folders = [arm, elbow]
+    together = [tmp_path / "together" / str(i) for i in range(2)]
+    track_sequences(model, scales, [load_sequence(f) for f in folders], together, cfg, ahead="none")
+    for i, folder in enumerate(folders):
+        alone = tmp_path / "alone" / str(i)
+        track_sequences(model, scales, [load_sequence(folder)], [alone], cfg, ahead="none")
+        for name in ("joints_world.json", "motion.bvh"):
+            assert (together[i] / name).read_bytes() == (alone / name).read_bytes(), (i, name)
+    assert (together[0] / "joints_world.json").read_bytes() != (
+        together[1] / "joints_world.json"
+    ).read_bytes()
+
+
 def test_overlays_are_frames_and_a_video_that_reads_back(model, camera, tmp_path, monkeypatch):
     """``overlays=True`` writes one PNG a frame and ``overlay.avi`` with the same frames
     (Motion JPEG: the same images up to the codec's loss), and no partial file is left. The

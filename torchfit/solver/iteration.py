@@ -8,7 +8,13 @@ from collections.abc import Callable
 import torch
 
 from torchfit.solver.jacobians import ResidualFn, evaluate_residual
-from torchfit.solver.normal import Block, normal_equations, valid_entries
+from torchfit.solver.normal import (
+    Block,
+    cholesky_each,
+    cholesky_solve_each,
+    normal_equations,
+    valid_entries,
+)
 from torchfit.solver.options import LMOptions
 from torchfit.solver.result import LMStatus
 from torchfit.solver.robust import problem_cost, robust_correct
@@ -127,8 +133,8 @@ def lm_step(s: dict, fn: ResidualFn, opts: LMOptions) -> tuple[torch.Tensor, tor
         keep = (~frozen_variables(x, grad, fixed, lo, hi)).to(dtype)
         damped = damped * keep[:, :, None] * keep[:, None, :] + torch.diag_embed(1 - keep)
         rhs = rhs * keep
-    factor, info = torch.linalg.cholesky_ex(torch.where(running[:, None, None], damped, eye))
-    h = torch.cholesky_solve(rhs[:, :, None], factor)[:, :, 0]
+    factor, info = cholesky_each(torch.where(running[:, None, None], damped, eye))
+    h = cholesky_solve_each(rhs, factor)
     solved = running & (info == 0) & torch.isfinite(h).all(dim=1)
     h = torch.where(solved[:, None], h, zero)
     h_lm = h

@@ -18,7 +18,8 @@ One iteration, for every running problem (references in brackets):
    Marquardt's scaling ``D² = diag(JᵀJ)`` [Marquardt 1963], kept non-decreasing as MINPACK's
    ``mode = 1`` does and clamped to ``[min_diag, max_diag]`` [Moré 1978; Ceres Solver's
    ``min_lm_diagonal`` / ``max_lm_diagonal``]; then the ``gtol`` test.
-2. Solve ``(A + mu D²) h = -g`` by Cholesky (``torch.linalg.cholesky_ex``). The damped matrix
+2. Solve ``(A + mu D²) h = -g`` by Cholesky (``torch.linalg.cholesky_ex``, per problem on
+   the CPU: :func:`torchfit.solver.normal.cholesky_each`). The damped matrix
    is rebuilt from the undamped ``A`` on every try. A failed factorisation counts as a bad step.
    With ``geodesic_acceleration``, ``h`` is the velocity ``v`` of a second-order step
    ``v + a/2`` (see below).

@@ -8,6 +8,11 @@ or row positions (MKL's batched kernels), and padding entries, although zero, ch
 remaining ones are grouped in a sum. One product per problem costs a Python loop over the
 running problems, which is small beside a residual evaluation.
 
+The damped systems are factored and solved the same way (:func:`cholesky_each`,
+:func:`cholesky_solve_each`): on the CPU, MKL's kernels round by the memory alignment of
+their data, which a matrix's place in a batch changes, so each problem's system is factored
+and solved on a fresh copy, as it is alone.
+
 A per-residual weighting (a robust loss) belongs in :func:`normal_equations` and
 :func:`half_squared_norm`: they are the only places where residuals and the Jacobian are
 reduced.
@@ -25,6 +30,8 @@ __all__ = [
     "normal_equations",
     "jacobian_times",
     "jacobian_t_times",
+    "cholesky_each",
+    "cholesky_solve_each",
 ]
 
 
@@ -185,4 +192,33 @@ def jacobian_t_times(
     for b in range(jac.shape[0]):
         index = valid[b]
         out[b] = _own(jac_t[b], index, 1) @ _own(v[b], index, 0)
+    return out
+
+
+def cholesky_each(matrices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torch.linalg.cholesky_ex`` of ``(B, P, P)`` symmetric matrices, each problem's factor
+    the one it has alone: on the CPU one factorisation per problem, on a fresh copy (MKL
+    rounds by the data's alignment, which a matrix's offset in the batch changes); on other
+    devices one batched call.
+
+    Returns:
+        ``(L, info)``, ``(B, P, P)`` and ``(B,)`` as ``cholesky_ex`` gives them.
+    """
+    if matrices.device.type != "cpu":
+        return torch.linalg.cholesky_ex(matrices)
+    factor = torch.empty_like(matrices)
+    info = torch.empty(matrices.shape[0], dtype=torch.int32)
+    for b in range(matrices.shape[0]):
+        factor[b], info[b] = torch.linalg.cholesky_ex(matrices[b].clone())
+    return factor, info
+
+
+def cholesky_solve_each(rhs: torch.Tensor, factor: torch.Tensor) -> torch.Tensor:
+    """``(B, P)`` solutions of ``L Lᵀ h = rhs`` for the ``(B, P, P)`` factors of
+    :func:`cholesky_each`, per problem on fresh copies on the CPU (as there)."""
+    if rhs.device.type != "cpu":
+        return torch.cholesky_solve(rhs[:, :, None], factor)[:, :, 0]
+    out = torch.empty_like(rhs)
+    for b in range(rhs.shape[0]):
+        out[b] = torch.cholesky_solve(rhs[b, :, None].clone(), factor[b].clone())[:, 0]
     return out

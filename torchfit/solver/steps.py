@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from torchfit.solver.jacobians import ResidualFn, evaluate_residual
-from torchfit.solver.normal import jacobian_t_times, jacobian_times
+from torchfit.solver.normal import cholesky_solve_each, jacobian_t_times, jacobian_times
 from torchfit.solver.options import LMOptions
 
 __all__ = ["ACCEL_FD_STEP", "frozen_variables", "geodesic_acceleration"]
@@ -67,7 +67,7 @@ def geodesic_acceleration(
     rhs = -jacobian_t_times(jac, rvv, valid)
     if keep is not None:
         rhs = rhs * keep
-    acc = torch.cholesky_solve(rhs[:, :, None], factor)[:, :, 0]
+    acc = cholesky_solve_each(rhs, factor)
     acc_ok = solved & torch.isfinite(acc).all(dim=1)
     acc = torch.where(acc_ok[:, None], acc, zero)
     dnorm = torch.sqrt(diag2)
