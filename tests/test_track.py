@@ -686,21 +686,27 @@ def test_track_tool_threads(tmp_path, capsys):
         torch.set_num_threads(before)
 
 
+def _unit_model(model, folder):
+    """A fitted subject folder of the template at unit scales (its params.json only)."""
+    import json
+
+    folder.mkdir()
+    scales = {s: [1.0, 1.0, 1.0] for s in model.template.segments}
+    (folder / "params.json").write_text(
+        json.dumps({"template": "mpeg4_full", "segment_scales": scales})
+    )
+    return folder
+
+
 def test_track_tool_names_an_unreadable_frame_with_exit_code_4(model, camera, tmp_path, capsys):
     """A frame that cannot be read, found while tracking (in the reader process), stops the
     run with the file named and exit code 4, as an unreadable sequence does."""
-    import json
 
     from scripts import load_script
 
     folder, _ = _write_sequence(model, camera, tmp_path)
     (folder / "frames" / "000001.png").write_bytes(b"not a png")
-    fitted = tmp_path / "fit"
-    fitted.mkdir()
-    scales = {s: [1.0, 1.0, 1.0] for s in model.template.segments}
-    (fitted / "params.json").write_text(
-        json.dumps({"template": "mpeg4_full", "segment_scales": scales})
-    )
+    fitted = _unit_model(model, tmp_path / "fit")
     tool = load_script("tools/track.py")
     before = torch.get_num_threads()
     try:
@@ -717,19 +723,12 @@ def test_a_sequence_with_an_unreadable_frame_costs_the_others_nothing(
 ):
     """Two sequences tracked together, the first with a frame that cannot be read: it is
     named and left out (exit code 4), and the second's outputs are those it has alone."""
-    import json
-
     from scripts import load_script
 
     bad, _ = _write_sequence(model, camera, tmp_path / "a")
     good, _ = _write_sequence(model, camera, tmp_path / "b")
     (bad / "frames" / "000001.png").write_bytes(b"not a png")
-    fitted = tmp_path / "fit"
-    fitted.mkdir()
-    scales = {s: [1.0, 1.0, 1.0] for s in model.template.segments}
-    (fitted / "params.json").write_text(
-        json.dumps({"template": "mpeg4_full", "segment_scales": scales})
-    )
+    fitted = _unit_model(model, tmp_path / "fit")
     tool = load_script("tools/track.py")
     argv = ["--config", "configs/track.yaml", "--model", str(fitted), "--threads", "1"]
     before = torch.get_num_threads()
