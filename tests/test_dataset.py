@@ -140,6 +140,18 @@ def test_a_subject_folder_given_as_the_dataset_is_named(tmp_path):
         load_dataset(tmp_path / "alice")
 
 
+def test_a_sequence_beside_the_subjects_is_named_as_one(tmp_path):
+    """tools/make_sequence.py writes subject/ and sequence/ side by side: the sequence (frames/,
+    no poses/) fails with what it is and how to leave it out, not six missing postures."""
+    make_subject(tmp_path, "subject")
+    (tmp_path / "sequence" / "frames").mkdir(parents=True)
+    subjects = {s.name: s for s in load_dataset(tmp_path)}
+    assert subjects["subject"].ok and not subjects["sequence"].ok
+    (problem,) = subjects["sequence"].problems
+    assert "a sequence (frames/, for tools/track.py), not a subject (poses/)" in problem
+    assert "data.subjects" in problem
+
+
 def test_load_dataset_manifest(tmp_path):
     data = tmp_path / "data"
     make_subject(data, "s1")

@@ -273,6 +273,13 @@ def load_subject(folder: str | Path, method: str = "auto") -> Subject:
     if not folder.is_dir():
         problems.append(f"{folder}: subject folder not found")
         return subject
+    if not (folder / "poses").is_dir() and (folder / "frames").is_dir():
+        # a tracking sequence beside the subjects (tools/make_sequence.py writes both)
+        problems.append(
+            f"{folder}: a sequence (frames/, for tools/track.py), not a subject (poses/); "
+            "name the subjects to fit with data.subjects"
+        )
+        return subject
     try:
         subject.camera = load_camera(folder / "camera.yaml")
     except CameraError as exc:
