@@ -24,8 +24,6 @@ these are where the silhouette is the same (``tools/track.py`` fits the same bod
 
 from __future__ import annotations
 
-import argparse
-import csv
 import json
 import sys
 from pathlib import Path
@@ -34,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from span_depth import posed_joints  # noqa: E402
+from span_depth import data_and_run, fitted_subjects, posed_joints  # noqa: E402
 
 from torchfit.body import BodyModel  # noqa: E402
 from torchfit.camera import camera_centre  # noqa: E402
@@ -61,29 +59,21 @@ def posture_errors(model: BodyModel, params: dict, truth: dict, centre: np.ndarr
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", required=True, help="the development set the run fitted")
-    p.add_argument("--run", required=True, help="the benchmark's output folder")
-    args = p.parse_args(argv)
-    data, run = Path(args.data), Path(args.run)
+    data, run = data_and_run(argv, __doc__.splitlines()[0])
     rows: dict[str, list] = {}
     model = None
-    with open(run / "summary.csv") as f:
-        for line in csv.DictReader(f):
-            folder = run / line["subject"]
-            if line["status"] == "failed" or not (folder / "params.json").is_file():
-                continue
-            params = json.loads((folder / "params.json").read_text())
-            model = model or BodyModel(params["template"])
-            truth = json.loads((data / line["subject"] / "truth.json").read_text())
-            camera = load_camera(data / line["subject"] / "camera.yaml")
-            centre = camera_centre(camera.R, camera.t)[0].double().numpy()
-            for pose in sorted(truth["joints_world"]):
-                if pose in params["poses"]:
-                    got = posture_errors(model, params, truth, centre, pose)
-                    true = truth["joints_world"][pose]
-                    ankles = abs(true["l_ankle"][2] - true["r_ankle"][2])
-                    rows.setdefault(pose, []).append((*got, ankles))
+    for subject, _, folder in fitted_subjects(run):
+        params = json.loads((folder / "params.json").read_text())
+        model = model or BodyModel(params["template"])
+        truth = json.loads((data / subject / "truth.json").read_text())
+        camera = load_camera(data / subject / "camera.yaml")
+        centre = camera_centre(camera.R, camera.t)[0].double().numpy()
+        for pose in sorted(truth["joints_world"]):
+            if pose in params["poses"]:
+                got = posture_errors(model, params, truth, centre, pose)
+                true = truth["joints_world"][pose]
+                ankles = abs(true["l_ankle"][2] - true["r_ankle"][2])
+                rows.setdefault(pose, []).append((*got, ankles))
     if not rows:
         raise SystemExit("error: no fitted subject with truth")
     trunk = [JOINTS.index(n) for n in TRUNK]

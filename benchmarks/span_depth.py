@@ -91,30 +91,37 @@ def subject_row(subject: Path, fitted: dict, model: BodyModel) -> dict[str, floa
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def data_and_run(argv: list[str] | None, description: str) -> tuple[Path, Path]:
+    """The ``--data`` (development set) and ``--run`` (benchmark folder) of a diagnostic."""
+    p = argparse.ArgumentParser(description=description)
     p.add_argument("--data", required=True, help="the development set the run fitted")
     p.add_argument("--run", required=True, help="the benchmark's output folder")
     args = p.parse_args(argv)
-    data, run = Path(args.data), Path(args.run)
-    rows, models = {}, {}
+    return Path(args.data), Path(args.run)
+
+
+def fitted_subjects(run: Path):
+    """Per subject of a benchmark run that was fitted (not ``failed``, with a params.json):
+    its name, status and folder, in ``summary.csv``'s order."""
     with open(run / "summary.csv") as f:
         for line in csv.DictReader(f):
             folder = run / line["subject"]
-            if line["status"] == "failed" or not (folder / "params.json").is_file():
-                continue
-            fitted = {
-                "params": json.loads((folder / "params.json").read_text()),
-                "measurements": json.loads((folder / "measurements.json").read_text()),
-            }
-            name = fitted["params"]["template"]
-            if name not in models:  # one model per template, not per subject
-                models[name] = BodyModel(name)
-            model = models[name]
-            rows[line["subject"]] = (
-                line["status"],
-                subject_row(data / line["subject"], fitted, model),
-            )
+            if line["status"] != "failed" and (folder / "params.json").is_file():
+                yield line["subject"], line["status"], folder
+
+
+def main(argv: list[str] | None = None) -> int:
+    data, run = data_and_run(argv, __doc__.splitlines()[0])
+    rows, models = {}, {}
+    for subject, status, folder in fitted_subjects(run):
+        fitted = {
+            "params": json.loads((folder / "params.json").read_text()),
+            "measurements": json.loads((folder / "measurements.json").read_text()),
+        }
+        name = fitted["params"]["template"]
+        if name not in models:  # one model per template, not per subject
+            models[name] = BodyModel(name)
+        rows[subject] = (status, subject_row(data / subject, fitted, models[name]))
     if len(rows) < 3:
         raise SystemExit("error: fewer than 3 fitted subjects with truth")
     print(f"{'subject':12s} {'status':9s} {'span':>7s} {'image':>7s} {'depth':>7s} {'ratio':>6s}")

@@ -9,19 +9,11 @@ import pytest
 import torch
 
 from torchfit.fit.layout import ParamLayout
-from torchfit.fit.pose import Poser, free_joints_for, nominal_angles
+from torchfit.fit.pose import Poser, template_layout
 
 
 def _poser(model) -> tuple[Poser, ParamLayout]:
-    poses = [1, 2, 3, 4, 5, 6]
-    layout = ParamLayout(
-        model.template.scale_groups,
-        model.dof_names,
-        model.joint_lower,
-        model.joint_upper,
-        nominal_angles(model, poses),
-        free_joints_for(list(model.dof_names), poses, None),
-    )
+    layout = template_layout(model, [1, 2, 3, 4, 5, 6])
     centres = torch.tensor([[0.3, -3.5, 1.3], [-0.4, -3.0, 1.6]], dtype=torch.float64)
     return Poser(model, layout, centres), layout
 

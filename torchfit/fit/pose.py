@@ -16,9 +16,9 @@ from torchfit._dual import is_dual, lift
 from torchfit.body.model import BodyModel
 from torchfit.body.postures import POSTURES, facing_yaw, nominal_joint_angles
 from torchfit.errors import ModelError
-from torchfit.fit.layout import ParamLayout
+from torchfit.fit.layout import JointBounds, ParamLayout
 
-__all__ = ["DEFAULT_FREE_JOINTS", "euler_rotation", "Poser", "free_joints_for"]
+__all__ = ["DEFAULT_FREE_JOINTS", "euler_rotation", "Poser", "free_joints_for", "template_layout"]
 
 _LIMB_DOFS = (
     "shoulder_flexion",
@@ -63,6 +63,31 @@ def free_joints_for(
             wanted = [d for d in DEFAULT_FREE_JOINTS[j] if d in dof_names]
         out[j] = list(wanted)
     return out
+
+
+def template_layout(
+    model: BodyModel,
+    poses: list[int],
+    free_joints: dict[str, list[str]] | None = None,
+    scale_bounds: tuple[float, float] = (0.4, 1.9),
+    bounds: JointBounds | None = None,
+) -> ParamLayout:
+    """The fit's parameter layout for ``model``'s template in the postures ``poses``, with
+    ``free_joints`` as :func:`free_joints_for` takes them.
+
+    Raises:
+        ConfigError: a free joint or DOF the template lacks.
+    """
+    return ParamLayout(
+        model.template.scale_groups,
+        model.dof_names,
+        model.joint_lower,
+        model.joint_upper,
+        nominal_angles(model, poses),
+        free_joints_for(list(model.dof_names), poses, free_joints),
+        scale_bounds,
+        bounds,
+    )
 
 
 def euler_rotation(yaw: torch.Tensor, roll: torch.Tensor, pitch: torch.Tensor) -> torch.Tensor:

@@ -20,7 +20,7 @@ from torchfit.body.model import BodyModel
 from torchfit.camera import camera_centre, project_points
 from torchfit.errors import ConfigError
 from torchfit.fit.jacobian import ENDPOINTS, jacobian_and_residual
-from torchfit.fit.layout import JointBounds, ParamLayout
+from torchfit.fit.layout import JointBounds
 from torchfit.fit.model_contour import (
     ContourEndpoints,
     ContourSelection,
@@ -31,7 +31,7 @@ from torchfit.fit.model_contour import (
 )
 from torchfit.fit.options import FitOptions, image_scale
 from torchfit.fit.person import PersonData
-from torchfit.fit.pose import Poser, free_joints_for, nominal_angles
+from torchfit.fit.pose import Poser, template_layout
 from torchfit.fit.residuals import barrier, model_to_person, person_to_model
 from torchfit.image.distance import sample_distance_map
 
@@ -66,14 +66,10 @@ class SilhouetteFit:
         self.camera = person.camera.to(device=model.device, dtype=model.dtype)
         self.poses = list(options.poses)
         self.sampler = EdgeSampler(model.faces, options.samples_per_edge)
-        free = free_joints_for(list(model.dof_names), self.poses, options.free_joints)
-        layout = ParamLayout(
-            model.template.scale_groups,
-            model.dof_names,
-            model.joint_lower,
-            model.joint_upper,
-            nominal_angles(model, self.poses),
-            free,
+        layout = template_layout(
+            model,
+            self.poses,
+            options.free_joints,
             scale_bounds,
             JointBounds(
                 options.translation_max_m,

@@ -21,8 +21,7 @@ from torchfit.body.measure import measure_model
 from torchfit.body.model import BodyModel
 from torchfit.config.schema import Config
 from torchfit.fit.bends import BendFit
-from torchfit.fit.layout import ParamLayout
-from torchfit.fit.pose import free_joints_for, nominal_angles
+from torchfit.fit.pose import template_layout
 from torchfit.fit.prior import load_prior, posture_prior_dofs
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.fit.stages import pose_contour_rms, pose_outliers, solve_stage
@@ -318,14 +317,6 @@ def check_names(model: BodyModel, config: Config) -> None:
         posture_prior_dofs(model, config.fit.prior)
     if config.fit.prior.weight > 0:
         load_prior(config.fit.prior.name)
-    poses = list(config.fit.poses)
-    layout = ParamLayout(
-        model.template.scale_groups,
-        model.dof_names,
-        model.joint_lower,
-        model.joint_upper,
-        nominal_angles(model, poses),
-        free_joints_for(list(model.dof_names), poses, config.fit.free_joints),
-    )
+    layout = template_layout(model, list(config.fit.poses), config.fit.free_joints)
     for stage in config.fit.stages:
         layout.scale_indices(stage.scales)
