@@ -137,6 +137,8 @@ def test_bad_mark_options_are_named(model, scene):
         BendOptions(joints=("pose3:l_hip,l_knee",))
     with pytest.raises(ConfigError, match="fit.bends.weight"):
         BendOptions(weight=-1.0)
+    with pytest.raises(ConfigError, match=r"fit.bends.max_width_ratio: expected a number > 1"):
+        BendOptions(max_width_ratio=0.8)
     camera, masks, _, _ = scene
     person = person_data_from_masks(masks[None, [2]], stack_cameras([camera]))
     person.silhouettes = {0: masks[None, 2]}

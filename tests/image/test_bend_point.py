@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from torchfit.errors import ShapeError
+from torchfit.fit.bends import bend_target
 from torchfit.image.bends import bend_point, limb_axis
 
 
@@ -67,8 +68,26 @@ def test_a_straight_limb_marks_no_bend():
     np.testing.assert_allclose(np.abs(axis[1]), [0.0, 1.0], atol=1e-6)
 
 
-def test_a_band_with_a_bite_out_of_it_is_not_an_axis():
-    # a thigh the segmentation lost half of, halfway down: its sections' midpoints jump
+def test_the_sections_a_bite_spoils_are_left_out_of_the_axis():
+    # a thigh the segmentation lost half of over its upper part: two of the nine sections
+    # are half as wide, their midpoints off the band's centre line; the other seven hold it
+    mask = np.zeros((300, 300), np.uint8)
+    _band(mask, (150.0, 40.0), (150.0, 150.0), 31)
+    _band(mask, (150.0, 150.0), (260.0, 150.0), 21)
+    whole = bend_point(mask.astype(bool), *map(np.array, [(150, 40), (150, 150), (260, 150)]))
+    mask[40:82, 150:170] = 0
+    hip, knee, ankle = (np.array(p, float) for p in [(150, 40), (150, 150), (260, 150)])
+    axis = limb_axis(mask.astype(bool), hip, knee, (0.3, 0.75))
+    assert axis is not None
+    np.testing.assert_allclose(axis[0][0], 150.0, atol=0.5)
+    np.testing.assert_allclose(axis[1], [0.0, 1.0], atol=1e-3)
+    found = bend_point(mask.astype(bool), hip, knee, ankle)
+    assert whole is not None and found is not None
+    np.testing.assert_allclose(found, whole, atol=0.5)
+
+
+def test_a_band_with_more_than_two_sections_spoilt_is_not_an_axis():
+    # four of the nine sections bitten: not a band with a few bad sections any more
     mask = np.zeros((300, 300), np.uint8)
     _band(mask, (150.0, 40.0), (150.0, 150.0), 31)
     _band(mask, (150.0, 150.0), (260.0, 150.0), 21)
@@ -76,6 +95,37 @@ def test_a_band_with_a_bite_out_of_it_is_not_an_axis():
     hip, knee, ankle = (np.array(p, float) for p in [(150, 40), (150, 150), (260, 150)])
     assert limb_axis(mask.astype(bool), hip, knee, (0.3, 0.75)) is None
     assert bend_point(mask.astype(bool), hip, knee, ankle) is None
+
+
+def test_a_band_mostly_spoilt_is_not_trusted_against_the_model():
+    # the bite reaches over seven of the nine sections: what is left is a straight band half
+    # as wide, a limb of its own to the image; the model's band at the same place is not
+    whole = np.zeros((300, 300), np.uint8)
+    _band(whole, (150.0, 40.0), (150.0, 150.0), 31)
+    _band(whole, (150.0, 150.0), (260.0, 150.0), 21)
+    spoilt = whole.copy()
+    spoilt[40:112, 150:170] = 0
+    joints = np.array([(150, 40), (150, 150), (260, 150)], float)
+    axis = limb_axis(spoilt.astype(bool), joints[0], joints[1], (0.3, 0.75))
+    assert axis is not None and axis.width == pytest.approx(16, abs=1.5)
+    assert limb_axis(whole.astype(bool), joints[0], joints[1], (0.3, 0.75)).width > 30
+    args = (15.0, 30.0, 1.5)
+    assert bend_target(spoilt.astype(bool), whole.astype(bool), joints, *args) is None
+    same = bend_target(whole.astype(bool), whole.astype(bool), joints, *args)
+    np.testing.assert_allclose(same, joints[1], atol=1e-9)
+
+
+def test_a_section_off_the_line_is_left_out():
+    # a hand against the thigh at one section: a run as wide as the band, shifted sideways
+    mask = np.zeros((300, 300), np.uint8)
+    _band(mask, (150.0, 40.0), (150.0, 150.0), 31)
+    mask[96:100, 135:141] = 0  # the band's left edge cut back at one section ...
+    mask[96:100, 166:172] = 1  # ... and grown on the right: same width, midpoint 6 px off
+    hip, knee = np.array([150.0, 40.0]), np.array([150.0, 150.0])
+    axis = limb_axis(mask.astype(bool), hip, knee, (0.3, 0.75))
+    assert axis is not None
+    np.testing.assert_allclose(axis[0][0], 150.0, atol=0.5)
+    np.testing.assert_allclose(axis[1], [0.0, 1.0], atol=1e-3)
 
 
 def test_a_limb_the_image_frame_cuts_is_not_measured():

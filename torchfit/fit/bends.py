@@ -40,7 +40,7 @@ from torchfit.fit.model_contour import ContourSelection
 from torchfit.fit.person import PersonData
 from torchfit.fit.prior import KnownFacts, PriorFit, PriorOptions, ScalePrior
 from torchfit.fit.problem import FitOptions
-from torchfit.image.bends import bend_point
+from torchfit.image.bends import crossing
 
 __all__ = ["BendOptions", "Bend", "SHOWN_BY", "parse_bends", "bend_target", "BendFit"]
 
@@ -66,6 +66,9 @@ class BendOptions:
             (a silhouette that lost part of a limb). This, ``shown_px`` and e_J are in
             reference pixels (:class:`torchfit.fit.FitOptions` ``reference_px_per_m``).
         min_angle_deg: the smallest bend between the two limbs' axes that marks the joint.
+        max_width_ratio: a person's limb band more than this many times wider or narrower
+            than the model's (median widths of the sections that made the two axes) is not
+            trusted: most of it lost to the segmentation, or merged with another limb.
         shown_px: a fitted joint within this of its mark shows the measurements it splits
             (:data:`SHOWN_BY`: the knee the thigh and the lower leg), and the judge takes
             their proportions from the images even outside the population's 1st–99th
@@ -76,6 +79,7 @@ class BendOptions:
     joints: tuple[str, ...] = ("pose3:l_hip,l_knee,l_ankle",)
     max_shift_px: float = 15.0
     min_angle_deg: float = 30.0
+    max_width_ratio: float = 1.5
     shown_px: float = 2.0
 
     def __post_init__(self) -> None:
@@ -88,6 +92,10 @@ class BendOptions:
         if not 0 < self.min_angle_deg < 90:
             raise ConfigError(
                 f"fit.bends.min_angle_deg: expected a number in (0, 90), got {self.min_angle_deg!r}"
+            )
+        if not self.max_width_ratio > 1:
+            raise ConfigError(
+                f"fit.bends.max_width_ratio: expected a number > 1, got {self.max_width_ratio!r}"
             )
         if not self.shown_px >= 0:
             raise ConfigError(f"fit.bends.shown_px: expected a number >= 0, got {self.shown_px!r}")
@@ -131,23 +139,29 @@ def bend_target(
     joints: np.ndarray,
     max_shift_px: float,
     min_angle_deg: float,
+    max_width_ratio: float = 1.5,
 ) -> np.ndarray | None:
     """Where the person's joint is, from the two silhouettes' limb crossings.
 
     Args:
         person, model: (H, W) bool silhouettes of the person and of the model as it stands.
         joints: (3, 2) the model's projected proximal joint, joint and distal joint, pixels.
-        max_shift_px, min_angle_deg: as :class:`BendOptions`.
+        max_shift_px, min_angle_deg, max_width_ratio: as :class:`BendOptions`.
 
     Returns:
-        (2,) pixel target of the joint, or ``None`` where a crossing is not found or the
+        (2,) pixel target of the joint, or ``None`` where a crossing is not found, a
+        person's limb band is not as wide as the model's within ``max_width_ratio``, or the
         shift exceeds ``max_shift_px``.
     """
-    on_person = bend_point(person, *joints, min_angle_deg=min_angle_deg)
-    on_model = bend_point(model, *joints, min_angle_deg=min_angle_deg)
+    on_person = crossing(person, *joints, min_angle_deg=min_angle_deg)
+    on_model = crossing(model, *joints, min_angle_deg=min_angle_deg)
     if on_person is None or on_model is None:
         return None
-    shift = on_person - on_model
+    for mine, theirs in ((on_person.upper, on_model.upper), (on_person.lower, on_model.lower)):
+        ratio = mine.width / theirs.width
+        if not 1 / max_width_ratio <= ratio <= max_width_ratio:
+            return None
+    shift = on_person.point - on_model.point
     if float(np.hypot(*shift)) > max_shift_px:
         return None
     return joints[1] + shift
@@ -254,7 +268,9 @@ class BendFit(PriorFit):
                 # max_shift_px is in reference pixels (FitOptions.reference_px_per_m)
                 shift = opts.max_shift_px / float(self.image_scale[subject])
                 for m in range(len(marks)):
-                    target = bend_target(mask, model, joints[i, m], shift, opts.min_angle_deg)
+                    target = bend_target(
+                        mask, model, joints[i, m], shift, opts.min_angle_deg, opts.max_width_ratio
+                    )
                     if target is not None:
                         out[i, m] = (target[0], target[1], 1.0)
             sel.marks = torch.as_tensor(out, **self.kw)

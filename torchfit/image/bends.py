@@ -17,15 +17,33 @@ Conventions as :mod:`torchfit.image.contours`: masks ``(H, W)`` bool (``True`` =
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from torchfit.errors import ShapeError
 
-__all__ = ["limb_axis", "bend_point"]
+__all__ = ["LimbAxis", "Crossing", "limb_axis", "crossing", "bend_point"]
 
 #: Step along a cross-section, pixels.
 _STEP = 0.5
+
+
+class LimbAxis(NamedTuple):
+    """A limb's band on a silhouette: a point on its axis, the axis' unit direction and the
+    band's median width (pixels, over the sections that made the axis)."""
+
+    point: np.ndarray
+    direction: np.ndarray
+    width: float
+
+
+class Crossing(NamedTuple):
+    """Where the axes of the two limbs at a bent joint cross (pixels), with the two axes."""
+
+    point: np.ndarray
+    upper: LimbAxis
+    lower: LimbAxis
 
 
 def _section_runs(
@@ -71,8 +89,17 @@ def limb_axis(
     sections: int = 9,
     min_sections: int = 5,
     max_bend: float = 0.08,
-) -> tuple[np.ndarray, np.ndarray] | None:
+    max_width_change: float = 0.25,
+    max_left_out: int = 2,
+) -> LimbAxis | None:
     """The axis of the band of person pixels along the segment ``start`` → ``end``.
+
+    A few cross-sections may be spoilt (a shadow's bite out of the band, a run that crosses
+    into a neighbouring limb, a hole where the person's colour matches the room): sections
+    whose width is more than ``max_width_change`` off the median width are left out, then the
+    section furthest from the axis, one at a time, while it is further than the band allows.
+    At most ``max_left_out`` sections go: trimmed further, any band would line up somewhere,
+    and the axis would be made by a bare majority of its sections.
 
     Args:
         mask: (H, W) bool silhouette.
@@ -80,15 +107,19 @@ def limb_axis(
         span: (t0, t1), the part of the segment whose cross-sections count (fractions of its
             length from ``start``).
         sections: how many cross-sections, evenly spaced over ``span``.
-        min_sections: the fewest cross-sections with a complete run of person pixels.
+        min_sections: the fewest cross-sections, complete runs of person pixels that line up,
+            that make an axis.
         max_bend: the largest distance of a section's midpoint from the axis, as a fraction
             of the median section (at least 1.5 px): a band whose midpoints do not lie on a
             line is not one limb (a silhouette with a hole, a hand against the thigh).
+        max_width_change: the largest relative difference of a section's width from the
+            median width of the sections.
+        max_left_out: the most sections (of those found) left out of the axis.
 
     Returns:
-        ``(point, direction)``: a point on the axis and its unit direction (pointing from
-        ``start`` towards ``end``), or ``None`` where too few sections were found or they do
-        not line up.
+        The :class:`LimbAxis` (its direction pointing from ``start`` towards ``end``), or
+        ``None`` where fewer than ``min_sections`` sections
+        are found, or they do not line up with at most ``max_left_out`` of them left out.
     """
     if mask.ndim != 2:
         raise ShapeError(f"mask: expected (H, W), got shape {tuple(mask.shape)}")
@@ -104,22 +135,28 @@ def limb_axis(
     runs = runs[np.isfinite(runs[:, 0])]
     if len(runs) < min_sections:
         return None
-    mids = runs[:, :2]
-    centre = mids.mean(0)
-    direction = np.linalg.svd(mids - centre)[2][0]
-    off_axis = np.abs((mids - centre) @ np.array([-direction[1], direction[0]]))
-    if off_axis.max() > max(1.5, max_bend * float(np.median(runs[:, 2]))):
-        return None
-    return centre, direction if direction @ d >= 0 else -direction
+    found = len(runs)
+    width = float(np.median(runs[:, 2]))
+    runs = runs[np.abs(runs[:, 2] - width) <= max_width_change * width]
+    while len(runs) >= max(min_sections, found - max_left_out):
+        mids = runs[:, :2]
+        centre = mids.mean(0)
+        direction = np.linalg.svd(mids - centre)[2][0]
+        off_axis = np.abs((mids - centre) @ np.array([-direction[1], direction[0]]))
+        width = float(np.median(runs[:, 2]))
+        if off_axis.max() <= max(1.5, max_bend * width):
+            return LimbAxis(centre, direction if direction @ d >= 0 else -direction, width)
+        runs = np.delete(runs, int(np.argmax(off_axis)), 0)
+    return None
 
 
-def bend_point(
+def crossing(
     mask: np.ndarray,
     proximal: np.ndarray,
     joint: np.ndarray,
     distal: np.ndarray,
     min_angle_deg: float = 30.0,
-) -> np.ndarray | None:
+) -> Crossing | None:
     """Where the axes of the limbs ``proximal`` → ``joint`` and ``joint`` → ``distal`` cross.
 
     Args:
@@ -130,15 +167,28 @@ def bend_point(
             nearly straight limbs cross anywhere along them.
 
     Returns:
-        (2,) pixel, or ``None`` where an axis is not found or the bend is too small.
+        The :class:`Crossing`, or ``None`` where an axis is not found or the bend is too
+        small.
     """
     upper = limb_axis(mask, proximal, joint, (0.3, 0.75))
     lower = limb_axis(mask, joint, distal, (0.3, 0.7))
     if upper is None or lower is None:
         return None
-    (p1, d1), (p2, d2) = upper, lower
+    (p1, d1, _), (p2, d2, _) = upper, lower
     sin = abs(d1[0] * d2[1] - d1[1] * d2[0])
     if sin < math.sin(math.radians(min_angle_deg)):
         return None
     a, _ = np.linalg.solve(np.stack([d1, -d2], 1), p2 - p1)
-    return p1 + a * d1
+    return Crossing(p1 + a * d1, upper, lower)
+
+
+def bend_point(
+    mask: np.ndarray,
+    proximal: np.ndarray,
+    joint: np.ndarray,
+    distal: np.ndarray,
+    min_angle_deg: float = 30.0,
+) -> np.ndarray | None:
+    """The (2,) pixel of :func:`crossing`, or ``None`` where there is none."""
+    found = crossing(mask, proximal, joint, distal, min_angle_deg)
+    return None if found is None else found.point
