@@ -26,6 +26,7 @@ from torchfit.fit.prior import load_prior, posture_prior_dofs
 from torchfit.fit.problem import SilhouetteFit
 from torchfit.fit.stages import pose_contour_rms, pose_outliers, solve_stage
 from torchfit.pipeline.checks import (
+    SHOWN_BY_POSTURE,
     bound_flags,
     population_ranges,
     proportion_flags,
@@ -289,6 +290,15 @@ def _final_flags(
             # population's percentiles, only by the hard limits
             shown = fit.shown(fit.mark_record(x, fit.select(x), i), i)
             outliers = [o for o in outliers if o.key not in shown]
+        # a posture that shows a length end to end, fitted with its full weight
+        outliers = [
+            o
+            for o in outliers
+            if not (
+                SHOWN_BY_POSTURE.get(o.key) in fit.poses
+                and SHOWN_BY_POSTURE[o.key] not in downweighted[i]
+            )
+        ]
         flags += hard or [o.describe() for o in outliers]
         flags += bound_flags([float(x[i, c]) for c in free], names, fit.scale_bounds)
         offsets = {j: fit.layout.root_offsets(x[i], j) for j in fit.poses}
