@@ -118,8 +118,8 @@ def limb_axis(
 
     Returns:
         The :class:`LimbAxis` (its direction pointing from ``start`` towards ``end``), or
-        ``None`` where fewer than ``min_sections`` sections
-        are found, or they do not line up with at most ``max_left_out`` of them left out.
+        ``None`` where fewer than ``min_sections`` sections are found, or they do not line up
+        with at most ``max_left_out`` of them left out.
     """
     if mask.ndim != 2:
         raise ShapeError(f"mask: expected (H, W), got shape {tuple(mask.shape)}")
