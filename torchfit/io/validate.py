@@ -18,6 +18,7 @@ __all__ = [
     "SEXES",
     "HEIGHT_RANGE_M",
     "WEIGHT_RANGE_KG",
+    "is_position",
     "validate_truth",
     "validate_facts",
     "load_facts",
@@ -38,6 +39,12 @@ CAPTURE_NAMES: tuple[str, ...] = tuple(f"pose{i}" for i in range(1, N_POSES + 1)
 
 def _is_number(x: Any) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def is_position(value: Any) -> bool:
+    """Whether ``value`` is a joint position as the truth files hold it: ``[x, y, z]``, three
+    finite numbers (metres)."""
+    return isinstance(value, list) and len(value) == 3 and all(_is_number(v) for v in value)
 
 
 def validate_truth(data: Any, source: str = "truth.json") -> list[str]:
@@ -85,7 +92,7 @@ def _validate_joints_world(value: Any, source: str) -> list[str]:
                 problems.append(
                     f"{source}: unknown joint '{where}.{name}' (valid: {', '.join(JOINT_NAMES)})"
                 )
-            elif not (isinstance(xyz, list) and len(xyz) == 3 and all(_is_number(v) for v in xyz)):
+            elif not is_position(xyz):
                 problems.append(
                     f"{source}: key '{where}.{name}' expects [x, y, z] in metres, got {xyz!r}"
                 )

@@ -36,6 +36,7 @@ from torchfit.image.shadow import bridged
 from torchfit.io.camera import load_camera
 from torchfit.io.dataset import resolve_method
 from torchfit.io.images import list_images, load_frames, read_mask, read_silhouette
+from torchfit.io.validate import is_position
 from torchfit.io.video import read_video, video_frame_count
 from torchfit.measurements import JOINT_NAMES
 from torchfit.pipeline.prepare import chroma_silhouettes
@@ -111,17 +112,7 @@ def _load_truth(path: Path, count: int | None) -> tuple[list[dict] | None, float
         raise DataError(f"{path}: {len(truth)} truth frames for {count} frames to track")
     names = [n for n in JOINT_NAMES if n != "head_top"]
     for k, frame in enumerate(truth[:count]):
-        bad = [
-            n
-            for n in names
-            if not isinstance(frame, dict)
-            or not isinstance(frame.get(n), list)
-            or len(frame[n]) != 3
-            or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                for v in frame[n]
-            )
-        ]
+        bad = [n for n in names if not (isinstance(frame, dict) and is_position(frame.get(n)))]
         if bad:
             raise DataError(
                 f"{path}: joints_world[{k}] expects [x, y, z] in metres for each of "

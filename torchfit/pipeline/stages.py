@@ -290,15 +290,11 @@ def _final_flags(
             # population's percentiles, only by the hard limits
             shown = fit.shown(fit.mark_record(x, fit.select(x), i), i)
             outliers = [o for o in outliers if o.key not in shown]
-        # a posture that shows a length end to end, fitted with its full weight
-        outliers = [
-            o
-            for o in outliers
-            if not (
-                SHOWN_BY_POSTURE.get(o.key) in fit.poses
-                and SHOWN_BY_POSTURE[o.key] not in downweighted[i]
-            )
-        ]
+        # lengths a posture shows end to end, where it was fitted with its full weight
+        whole = {
+            k for k, j in SHOWN_BY_POSTURE.items() if j in fit.poses and j not in downweighted[i]
+        }
+        outliers = [o for o in outliers if o.key not in whole]
         flags += hard or [o.describe() for o in outliers]
         flags += bound_flags([float(x[i, c]) for c in free], names, fit.scale_bounds)
         offsets = {j: fit.layout.root_offsets(x[i], j) for j in fit.poses}
