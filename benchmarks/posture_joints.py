@@ -14,7 +14,12 @@ compared with the truth's ``joints_world.pose<k>``. Per posture it prints, in mi
 - the mean and largest height of the higher sole above the floor (the lower one touches it):
   a leg swung along the ray lifts its foot while the outline hardly changes. The truth's
   ankles are compared too (the generator drops the lowest point of its body onto the floor,
-  so its own feet float a little where a posture's joint angles differ left to right).
+  so its own feet float a little where a posture's joint angles differ left to right);
+- the signed height of the posed head top above the floor, fitted less true, and the
+  posture's fold, fitted and true: the reported height (the neutral body's, from
+  ``measurements.json`` and ``truth.json``) less the posed head top's height. A fitted body
+  that folds more than the truth (a lean, hips or knees bent along the ray, none of which the
+  outline shows) is reported taller than it stands in the images.
 
     python benchmarks/posture_joints.py --data <dev set> --run <benchmark run folder>
 
@@ -67,32 +72,42 @@ def main(argv: list[str] | None = None) -> int:
         model = model or BodyModel(params["template"])
         truth = json.loads((data / subject / "truth.json").read_text())
         camera = load_camera(data / subject / "camera.yaml")
+        height = json.loads((folder / "measurements.json").read_text())["height_m"]
         centre = camera_centre(camera.R, camera.t)[0].double().numpy()
         for pose in sorted(truth["joints_world"]):
             if pose in params["poses"]:
                 got = posture_errors(model, params, truth, centre, pose)
                 true = truth["joints_world"][pose]
                 ankles = abs(true["l_ankle"][2] - true["r_ankle"][2])
-                rows.setdefault(pose, []).append((*got, ankles))
+                top = posed_joints(model, params, pose)["head_top"][2]
+                tops = (
+                    top - true["head_top"][2],
+                    height - top,
+                    truth["height_m"] - true["head_top"][2],
+                )
+                rows.setdefault(pose, []).append((*got, ankles, tops))
     if not rows:
         raise SystemExit("error: no fitted subject with truth")
     trunk = [JOINTS.index(n) for n in TRUNK]
     print(
         f"{'posture':8s} {'n':>3s} {'mean':>6s} {'along':>6s} {'across':>6s} {'signed':>7s} "
-        f"{'trunk sd':>8s} {'sole mean/max':>14s} {'true ankles dz':>14s}"
+        f"{'trunk sd':>8s} {'sole mean/max':>14s} {'true ankles dz':>14s} "
+        f"{'head top':>8s} {'fold fit/true':>14s}"
     )
     every = []
     for pose, got in rows.items():
         norm = np.array([np.linalg.norm(d, axis=1) for d, *_ in got]) * 1000
         along = np.array([a for _, a, *_ in got]) * 1000
         across = np.array([c for _, _, c, *_ in got]) * 1000
-        float_mm = np.array([s.max() - s.min() for *_, s, _ in got]) * 1000
-        true_dz = np.array([t for *_, t in got]) * 1000
+        float_mm = np.array([s.max() - s.min() for *_, s, _, _ in got]) * 1000
+        true_dz = np.array([t for *_, t, _ in got]) * 1000
+        top, fold, true_fold = (np.array([row[-1] for row in got]) * 1000).mean(0)
         every.append((norm, along, across))
         print(
             f"{pose:8s} {len(got):3d} {norm.mean():6.1f} {np.abs(along).mean():6.1f} "
             f"{across.mean():6.1f} {along.mean():+7.1f} {along[:, trunk].mean(1).std():8.1f} "
-            f"{float_mm.mean():6.1f} / {float_mm.max():5.1f} {true_dz.mean():8.1f} mm"
+            f"{float_mm.mean():6.1f} / {float_mm.max():5.1f} {true_dz.mean():8.1f} mm "
+            f"{top:+8.1f} {fold:6.1f} / {true_fold:5.1f} mm"
         )
     norm, along, across = (np.concatenate([e[k].ravel() for e in every]) for k in range(3))
     print(
