@@ -50,8 +50,8 @@ TRUNK = ("back", "neck", "l_shoulder", "r_shoulder", "l_hip", "r_hip")
 
 def posture_errors(model: BodyModel, params: dict, truth: dict, centre: np.ndarray, pose: str):
     """One subject's posture ``pose``: per joint the error vector (J, 3) split into its signed
-    part along the camera's ray through the true joint (J,) and its part across it (J,), and
-    the fitted soles' heights (2,)."""
+    part along the camera's ray through the true joint (J,) and its part across it (J,), the
+    fitted soles' heights (2,) and the fitted head top's height."""
     fitted = posed_joints(model, params, pose)
     true = truth["joints_world"][pose]
     diff = np.array([fitted[n] - np.asarray(true[n]) for n in JOINTS])
@@ -60,7 +60,7 @@ def posture_errors(model: BodyModel, params: dict, truth: dict, centre: np.ndarr
     along = (diff * rays).sum(1)
     across = np.linalg.norm(diff - along[:, None] * rays, axis=1)
     soles = np.array([fitted["l_sole"][2], fitted["r_sole"][2]])
-    return diff, along, across, soles
+    return diff, along, across, soles, fitted["head_top"][2]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -76,10 +76,9 @@ def main(argv: list[str] | None = None) -> int:
         centre = camera_centre(camera.R, camera.t)[0].double().numpy()
         for pose in sorted(truth["joints_world"]):
             if pose in params["poses"]:
-                got = posture_errors(model, params, truth, centre, pose)
+                *got, top = posture_errors(model, params, truth, centre, pose)
                 true = truth["joints_world"][pose]
                 ankles = abs(true["l_ankle"][2] - true["r_ankle"][2])
-                top = posed_joints(model, params, pose)["head_top"][2]
                 tops = (
                     top - true["head_top"][2],
                     height - top,
