@@ -12,7 +12,13 @@ import pytest
 
 from torchfit.errors import ShapeError
 from torchfit.fit.bends import bend_target
-from torchfit.image.bends import bend_point, limb_axis
+from torchfit.image.bends import crossing, limb_axis
+
+
+def bend_point(mask: np.ndarray, *joints) -> np.ndarray | None:
+    """The crossing's pixel, or None where :func:`crossing` finds none."""
+    found = crossing(mask, *joints)
+    return None if found is None else found.point
 
 
 def _band(mask: np.ndarray, a, b, width: int) -> None:

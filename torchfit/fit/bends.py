@@ -6,7 +6,7 @@ on the development sets, and the leg's split between thigh and shank followed th
 instead of the person's (``benchmarks/RESULTS.md``, "The knee from its limbs").
 
 The limbs on either side of a bent joint are straight bands on the silhouette, and the axes of
-the two bands cross near the joint (:func:`torchfit.image.bends.bend_point`). Not at the joint
+the two bands cross near the joint (:func:`torchfit.image.bends.crossing`). Not at the joint
 centre itself: a calf bulges behind the shank's bone. The model, drawn at its current pose,
 shows the same crossing on its own silhouette, so the person's joint is where the model's
 joint would be moved by the difference of the two crossings:
@@ -139,7 +139,7 @@ def bend_target(
     joints: np.ndarray,
     max_shift_px: float,
     min_angle_deg: float,
-    max_width_ratio: float = 1.5,
+    max_width_ratio: float,
 ) -> np.ndarray | None:
     """Where the person's joint is, from the two silhouettes' limb crossings.
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from torchfit.errors import ShapeError
 
-__all__ = ["LimbAxis", "Crossing", "limb_axis", "crossing", "bend_point"]
+__all__ = ["LimbAxis", "Crossing", "limb_axis", "crossing"]
 
 #: Step along a cross-section, pixels.
 _STEP = 0.5
@@ -180,15 +180,3 @@ def crossing(
         return None
     a, _ = np.linalg.solve(np.stack([d1, -d2], 1), p2 - p1)
     return Crossing(p1 + a * d1, upper, lower)
-
-
-def bend_point(
-    mask: np.ndarray,
-    proximal: np.ndarray,
-    joint: np.ndarray,
-    distal: np.ndarray,
-    min_angle_deg: float = 30.0,
-) -> np.ndarray | None:
-    """The (2,) pixel of :func:`crossing`, or ``None`` where there is none."""
-    found = crossing(mask, proximal, joint, distal, min_angle_deg)
-    return None if found is None else found.point
