@@ -140,6 +140,7 @@ def test_the_defaults_are_the_accuracy_configuration():
     assert _differences(default, demo) == ["run.name", "data.root", "fit.batch_size"]
     assert default.fit.prior.weight == 0.3 and default.fit.prior.pose_weight == 0.5
     assert default.fit.bends.weight == 1.0 and default.solver.min_diag == 1.0
+    assert default.fit.contour_orientation_px == 8.0
     assert [s.max_iter for s in default.fit.stages] == [30, 50]
 
 

@@ -46,8 +46,10 @@ def segmented(subjects) -> torch.Tensor:
 
 def problem(model, subjects, fit_config=None):
     cams = stack_cameras([s.camera for s in subjects])
-    person = person_data_from_masks(segmented(subjects), cams)
-    return SilhouetteFit(model, person, fit_config or FitOptions())
+    options = fit_config or FitOptions()
+    oriented = options.contour_orientation_px > 0
+    person = person_data_from_masks(segmented(subjects), cams, normals=oriented)
+    return SilhouetteFit(model, person, options)
 
 
 def test_autograd_residual_matches_the_rendered_contour_residual(model, subjects):
@@ -65,8 +67,10 @@ def test_autograd_residual_matches_the_rendered_contour_residual(model, subjects
         offset += n + 1
 
 
-def test_autograd_jacobian_matches_central_differences(model, subjects):
-    fit = problem(model, subjects[0][:1])
+@pytest.mark.parametrize("orientation_px", [0.0, 8.0])
+def test_autograd_jacobian_matches_central_differences(model, subjects, orientation_px):
+    fit = problem(model, subjects[0][:1], FitOptions(contour_orientation_px=orientation_px))
+    assert (fit.person.normals is not None) == (orientation_px > 0)
     g = torch.Generator().manual_seed(0)
     x = fit.initial_params() + 0.01 * torch.randn(
         1, fit.num_params, generator=g, dtype=torch.float64
@@ -88,10 +92,11 @@ def test_autograd_jacobian_matches_central_differences(model, subjects):
     assert checked > 10
 
 
-def test_the_jacobian_pass_gives_the_residual_bit_for_bit(model, subjects):
+@pytest.mark.parametrize("orientation_px", [0.0, 8.0])
+def test_the_jacobian_pass_gives_the_residual_bit_for_bit(model, subjects, orientation_px):
     """jacobian_and_residual's residual is residual()'s (the solver takes it as the reference
     of the next trial step), for every row of a batch."""
-    fit = problem(model, subjects[0])
+    fit = problem(model, subjects[0], FitOptions(contour_orientation_px=orientation_px))
     g = torch.Generator().manual_seed(1)
     x = fit.initial_params() + 0.01 * torch.randn(
         2, fit.num_params, generator=g, dtype=torch.float64

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from torchfit.errors import ShapeError
+from torchfit.fit.contour_geometry import outward_normals
 from torchfit.fit.model_contour import (
     ContourSelection,
     EdgeSampler,
@@ -297,3 +298,46 @@ def test_point_to_edge_distance_gradcheck():
     assert ((t - 0.25).abs() > 0.05).all() and ((t - 0.5).abs() > 0.05).all()
     inputs = tuple(v.clone().requires_grad_() for v in (x, a, b, t0))
     assert torch.autograd.gradcheck(lambda *v: point_to_edge_distance(*v, 0.125), inputs, atol=1e-6)
+
+
+def _trunk_and_arm() -> tuple[EdgeSampler, torch.Tensor]:
+    """Two rectangles 4 px apart: a trunk (u 10-30) and an arm (u 34-40), v 10-50."""
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    pix = torch.cat([_square(10.0, 10.0, 30.0, 50.0), _square(34.0, 10.0, 40.0, 50.0)])
+    return EdgeSampler(faces, samples_per_edge=4), pix[None]
+
+
+def test_oriented_choice_pairs_a_pixel_with_a_sample_facing_its_way():
+    s, pix = _trunk_and_arm()
+    # the right side of the person's trunk at u = 33, facing right (+u): nearest in the image
+    # is the arm's left side (1 px, facing left), the trunk's right side is 3 px off
+    v = torch.arange(15.0, 46.0, 3.0, dtype=torch.float64)
+    person = torch.stack([torch.full_like(v, 33.0), v], 1)[None]
+    valid = torch.ones(1, v.numel(), dtype=torch.bool)
+    normals = torch.tensor([1.0, 0.0]).expand(1, v.numel(), 2)
+    plain = select_contour(s, pix, person, valid, (64, 64), 1.0)
+    oriented = select_contour(s, pix, person, valid, (64, 64), 1.0, normals, 8.0)
+    for sel, side_u in ((plain, 34.0), (oriented, 30.0)):
+        paired = torch.gather(sel.samples[0], 0, sel.nearest[0])
+        u = s.all_points(pix)[0, paired, 0]
+        assert torch.allclose(u, torch.full_like(u, side_u))
+    # without normals, or at 0 px, the choice is the plain one
+    for sel in (
+        select_contour(s, pix, person, valid, (64, 64), 1.0, None, 8.0),
+        select_contour(s, pix, person, valid, (64, 64), 1.0, normals, 0.0),
+    ):
+        assert torch.equal(sel.nearest, plain.nearest) and torch.equal(sel.samples, plain.samples)
+
+
+def test_outward_normals_of_the_chosen_samples_point_out_of_their_rectangle():
+    s, pix = _trunk_and_arm()
+    person = torch.zeros(1, 1, 2, dtype=torch.float64)
+    sel = select_contour(s, pix, person, torch.ones(1, 1, dtype=torch.bool), (64, 64))
+    chosen = sel.samples[0][sel.sample_valid[0]].numpy()
+    n = outward_normals(s, pix[0].numpy(), chosen)
+    pts = s.all_points(pix)[0, chosen].numpy()
+    centre = np.where(pts[:, :1] < 32, [[20.0, 30.0]], [[37.0, 30.0]])
+    assert np.allclose(np.linalg.norm(n, axis=1), 1.0)
+    # each normal is an axis, pointing from its rectangle's centre through the sample
+    assert ((n * (pts - centre)).sum(1) > 0).all()
+    assert np.allclose(np.abs(n).max(1), 1.0)

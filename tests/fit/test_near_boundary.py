@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from torchfit.fit.model_contour import _near_boundary
+from torchfit.fit.contour_geometry import near_boundary as _near_boundary
 from torchfit.viz.raster import outer_outlines
 
 

@@ -12,6 +12,7 @@ from scipy import ndimage
 from torchfit.errors import ShapeError
 from torchfit.image import (
     contour_mask,
+    contour_normals,
     outer_contours,
     trace_outer_contour,
 )
@@ -80,3 +81,33 @@ def test_contour_mask_is_the_4_adjacent_border_of_a_hole_free_region() -> None:
     for m, g in zip(masks, got, strict=True):
         ref = m & ~ndimage.binary_erosion(m, cross, border_value=0)
         np.testing.assert_array_equal(g, ref)
+
+
+def test_contour_normals_point_out_of_a_disk_and_a_rectangle() -> None:
+    yy, xx = np.mgrid[:60, :80]
+    disk = (xx - 40) ** 2 + (yy - 30) ** 2 < 20**2
+    c = trace_outer_contour(disk)
+    n = contour_normals(c)
+    radial = c.float() - torch.tensor([40.0, 30.0])
+    radial = radial / radial.norm(dim=1, keepdim=True)
+    assert n.norm(dim=1).sub(1).abs().max() < 1e-6
+    assert (n * radial).sum(1).min() > 0.95
+    rect = np.zeros((40, 50), bool)
+    rect[10:30, 5:45] = True
+    c = trace_outer_contour(rect)
+    n = contour_normals(c)
+    # away from the corners, the sides' normals are the axes
+    sides = {"top": (0, -1), "bottom": (0, 1), "left": (-1, 0), "right": (1, 0)}
+    for side, (u, v) in sides.items():
+        if side in ("top", "bottom"):
+            at = (c[:, 1] == (10 if side == "top" else 29)) & (c[:, 0] > 10) & (c[:, 0] < 40)
+        else:
+            at = (c[:, 0] == (5 if side == "left" else 44)) & (c[:, 1] > 14) & (c[:, 1] < 26)
+        assert at.sum() > 5
+        assert torch.allclose(n[at], torch.tensor([[float(u), float(v)]]).expand(int(at.sum()), 2))
+
+
+def test_contour_normals_of_a_too_short_contour_are_zero() -> None:
+    assert contour_normals(torch.tensor([[3, 4], [4, 4]])).abs().sum() == 0
+    with pytest.raises(ShapeError):
+        contour_normals(torch.zeros(5, 3))

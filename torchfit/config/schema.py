@@ -288,12 +288,14 @@ class FitConfig(FitOptions):
 
     The defaults are the configuration the accuracy figures of benchmarks/RESULTS.md are
     measured with (``configs/benchmark.yaml`` states them): stages of 30 and 50 iterations,
-    the population prior at 0.3 and the posture prior at 0.5, the knee's marks at 1.0 and the
-    side views' roll within 0.5 degrees. (The classes of :mod:`torchfit.fit` keep their own
-    neutral defaults, all of these off, for library use.)
+    the population prior at 0.3 and the posture prior at 0.5, the knee's marks at 1.0, the
+    side views' roll within 0.5 degrees and the person's contour pixels paired with model
+    samples facing their way (``contour_orientation_px`` 8). (The classes of
+    :mod:`torchfit.fit` keep their own neutral defaults, all of these off, for library use.)
     """
 
     side_roll_max_deg: float | None = 0.5
+    contour_orientation_px: float = 8.0
     stages: tuple[StageOptions, ...] = field(default_factory=_default_stages)
     method: Literal["autograd_lm", "minpack_rendered"] = "autograd_lm"
     initial_guess: Literal["template", "parts"] = "template"

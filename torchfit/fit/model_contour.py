@@ -10,7 +10,11 @@ outside autograd each time the parameters change (:func:`select_contour`):
    outer boundary of a projected mesh runs along its silhouette edges:
    :func:`torchfit.viz.raster.edge_outline`); a candidate sample lies *on the model contour*
    when it is within ``tolerance`` pixels of an outline pixel;
-4. for every person contour pixel the nearest selected sample is recorded.
+4. for every person contour pixel the nearest selected sample is recorded; with an
+   orientation weight ``λ`` (pixels), the nearest in ``(u, v, λ n)``, ``n`` the outward
+   normals of the pixel and of the sample's projected edge: a sample facing the other way
+   counts ``2 λ`` pixels further off, so that the outline of an arm that the model holds
+   against the trunk is not paired with the side of the person's trunk beside it.
 
 Given that choice (:func:`contour_endpoints` turns it into mesh edges and fractions), the
 contour points and :func:`point_to_edge_distance` are plain torch functions of the projected
@@ -20,13 +24,13 @@ pixel (0, 0) the centre of the top-left pixel.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from torchfit.errors import ShapeError, check_shape
+from torchfit.fit.contour_geometry import near_boundary, outward_normals
 from torchfit.fit.contour_pool import map_chunks
 from torchfit.image.contours import on_image_frame
 from torchfit.viz.raster import edge_outline, fixed_points, render_fixed
@@ -201,37 +205,6 @@ def _widen(t: torch.Tensor, width: int) -> torch.Tensor:
     return torch.cat([t, t.new_zeros(t.shape[0], width - t.shape[1])], 1)
 
 
-def _near_boundary(
-    bpix: np.ndarray, ui: np.ndarray, vi: np.ndarray, size: tuple[int, int], tolerance: float
-) -> np.ndarray:
-    """(N,) bool: pixel (ui, vi) is within ``tolerance`` of a boundary pixel ``bpix`` (n, 2).
-
-    Exact: the pixel offsets within ``tolerance`` (``du² + dv² <= tolerance²``, 5 of them for
-    one pixel) are looked up around each query pixel in an image of the boundary pixels; the
-    exact Euclidean distance transform gives the same answer at many times the cost.
-    """
-    near = np.zeros(ui.shape, bool)
-    if not len(bpix):
-        return near
-    w, h = size
-    r = int(np.floor(tolerance))
-    boundary = np.zeros((h + 2 * r, w + 2 * r), bool)
-    boundary[bpix[:, 1] + r, bpix[:, 0] + r] = True
-    for a, b in _offsets(tolerance):
-        near |= boundary[vi + r + b, ui + r + a]
-    return near
-
-
-@functools.lru_cache(maxsize=8)
-def _offsets(tolerance: float) -> tuple[tuple[int, int], ...]:
-    """The pixel offsets ``(du, dv)`` with ``du² + dv² <= tolerance²``."""
-    r = int(np.floor(tolerance))
-    span = np.arange(-r, r + 1)
-    du, dv = np.meshgrid(span, span)
-    within = du * du + dv * dv <= tolerance * tolerance
-    return tuple(zip(du[within].tolist(), dv[within].tolist(), strict=True))
-
-
 @torch.no_grad()
 def select_contour(
     sampler: EdgeSampler,
@@ -240,6 +213,8 @@ def select_contour(
     person_valid: torch.Tensor,
     image_size: tuple[int, int],
     tolerance: float = 1.0,
+    person_normals: torch.Tensor | None = None,
+    orientation_px: float | torch.Tensor = 0.0,
 ) -> ContourSelection:
     """Choose the mesh edge samples that form the model's outer contour.
 
@@ -250,6 +225,10 @@ def select_contour(
         person_valid: (B, C) bool.
         image_size: ``(width, height)``.
         tolerance: max distance in pixels from a contour pixel of the rendered silhouette.
+        person_normals: optional (B, C, 2) outward normals of the person contour pixels
+            (:attr:`torchfit.fit.PersonData.normals`), for ``orientation_px``.
+        orientation_px: ``λ`` of the module docstring, one for all images or a (B,) tensor
+            (0, or no ``person_normals``: the nearest sample whichever way it faces).
 
     Returns:
         :class:`ContourSelection`. An image whose model has no contour sample in view gets no
@@ -258,8 +237,16 @@ def select_contour(
         outside the image are not chosen, nor are those near the image frame only because the
         rendered silhouette runs along it where the model leaves the picture.
     """
+    normals = None if person_normals is None else [person_normals]
     return select_contours(
-        sampler, [pixels], [person_contours], [person_valid], image_size, tolerance
+        sampler,
+        [pixels],
+        [person_contours],
+        [person_valid],
+        image_size,
+        tolerance,
+        normals,
+        orientation_px,
     )[0]
 
 
@@ -271,6 +258,8 @@ def select_contours(
     person_valid: list[torch.Tensor],
     image_size: tuple[int, int],
     tolerance: float = 1.0,
+    person_normals: list[torch.Tensor] | None = None,
+    orientation_px: float | list[torch.Tensor] = 0.0,
 ) -> list[ContourSelection]:
     """:func:`select_contour` for several batches of images at once (one per posture, say):
     their images are spread over the contour worker processes where there are some
@@ -279,13 +268,29 @@ def select_contours(
     Args:
         pixels, person_contours, person_valid: one (B, V, 2), (B, C, 2) and (B, C) each per
             batch of images.
+        person_normals: optional, one (B, C, 2) per batch of images (see
+            :func:`select_contour`).
+        orientation_px: ``λ``, one for all images or one (B,) tensor per batch.
     """
     items = []
-    for px, contours, valid in zip(pixels, person_contours, person_valid, strict=True):
+    if person_normals is None:
+        person_normals = [None] * len(pixels)
+    if not isinstance(orientation_px, list):
+        orientation_px = [torch.as_tensor(orientation_px).expand(p.shape[0]) for p in pixels]
+    batches = zip(
+        pixels, person_contours, person_valid, person_normals, orientation_px, strict=True
+    )
+    for px, contours, valid, normals, lam in batches:
         check_shape("pixels", px, ("B", "V", 2))
         px = px.detach().cpu().double().numpy()
         contours, valid = contours.cpu().numpy(), valid.cpu().numpy()
-        items += [(px[i], contours[i], valid[i]) for i in range(px.shape[0])]
+        normals = None if normals is None else normals.cpu().numpy()
+        lam = lam.detach().cpu().double().numpy()
+        items += [
+            (px[i], contours[i], valid[i], None if normals is None or lam[i] <= 0 else normals[i])
+            + (float(lam[i]),)
+            for i in range(px.shape[0])
+        ]
     chosen = map_chunks(_choose, items, (sampler, image_size, tolerance))
     out, at = [], 0
     for px, contours in zip(pixels, person_contours, strict=True):
@@ -303,7 +308,7 @@ def _choose(item: tuple, sampler: EdgeSampler, size: tuple[int, int], tolerance:
     person contour pixel (0 where invalid or none), its projected vertices in fixed point)."""
     from scipy.spatial import cKDTree
 
-    px, contour, valid = item
+    px, contour, valid, normals, orientation = item
     w, h = size
     cand = np.flatnonzero(sampler.silhouette_edges(px))
     fixed = fixed_points(px)
@@ -318,11 +323,15 @@ def _choose(item: tuple, sampler: EdgeSampler, size: tuple[int, int], tolerance:
     on, p = on[inside], p[inside]
     ui = np.clip(np.rint(p[:, 0]), 0, w - 1).astype(np.int64)
     vi = np.clip(np.rint(p[:, 1]), 0, h - 1).astype(np.int64)
-    near = _near_boundary(bpix, ui, vi, (w, h), tolerance)
+    near = near_boundary(bpix, ui, vi, (w, h), tolerance)
     on, p = on[near], p[near]
     nearest = np.zeros(len(valid), np.int64)
     if len(on) and valid.any():
-        nearest[valid] = cKDTree(p).query(contour[valid])[1]
+        query = contour[valid]
+        if normals is not None:
+            p = np.concatenate([p, orientation * outward_normals(sampler, px, on)], 1)
+            query = np.concatenate([query, orientation * normals[valid]], 1)
+        nearest[valid] = cKDTree(p).query(query)[1]
     return on, nearest, fixed
 
 

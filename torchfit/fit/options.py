@@ -35,6 +35,11 @@ class FitOptions:
         samples_per_edge: model contour candidates per mesh edge.
         contour_tolerance_px: a sample within this of the rendered contour is on it.
         contour_stride: use every n-th person contour pixel in e_P.
+        contour_orientation_px: pair each person contour pixel (e_P) with the nearest model
+            contour sample in ``(u, v, λ n)``, ``λ`` this many pixels and ``n`` the outward
+            normals of the pixel and of the sample's edge: a sample facing the other way counts
+            ``2 λ`` pixels further off (:mod:`torchfit.fit.model_contour`); in reference
+            pixels (``reference_px_per_m``). 0: the nearest sample whichever way it faces.
         ignore_shadow: treat the pixels the segmentation's shadow test removed as uncertain
             rather than as background: no e_P from person contour pixels within
             ``shadow_margin_px`` of them, no e_M from model contour points on them (has an
@@ -73,6 +78,7 @@ class FitOptions:
     samples_per_edge: int = 4
     contour_tolerance_px: float = 1.0
     contour_stride: int = 1
+    contour_orientation_px: float = 0.0
     ignore_shadow: bool = True
     shadow_margin_px: int = 2
     pose_outlier_k: float | None = 5.0
@@ -120,6 +126,7 @@ _LOWEST = {
     "samples_per_edge": 1,
     "contour_tolerance_px": 0,
     "contour_stride": 1,
+    "contour_orientation_px": 0,
     "shadow_margin_px": 0,
     "pose_outlier_min_px": 0,
 }

@@ -11,7 +11,12 @@ import torch
 
 from torchfit.camera import Camera
 from torchfit.errors import ShapeError
-from torchfit.image.contours import on_image_frame, outline_mask, trace_outer_contour
+from torchfit.image.contours import (
+    contour_normals,
+    on_image_frame,
+    outline_mask,
+    trace_outer_contour,
+)
 from torchfit.image.distance import distance_map
 
 __all__ = ["PersonData", "person_data_from_masks"]
@@ -36,6 +41,10 @@ class PersonData:
         silhouettes: optional posture index -> (B, H, W) bool silhouettes, for the postures
             whose bent joints the fit marks (:class:`torchfit.fit.bends.BendFit`); only the
             host reads them, and :meth:`to` leaves them where they are.
+        normals: optional J tensors (B, C_j, 2), float32: the outward unit normal of each
+            person contour pixel (:func:`torchfit.image.contours.contour_normals`; zero on
+            padding), for a contour choice that pairs pixels with model samples facing the
+            same way (``FitOptions.contour_orientation_px``).
     """
 
     contours: list[torch.Tensor]
@@ -44,6 +53,7 @@ class PersonData:
     camera: Camera
     uncertain: list[torch.Tensor] | None = None
     silhouettes: dict[int, torch.Tensor] | None = None
+    normals: list[torch.Tensor] | None = None
 
     @property
     def batch_size(self) -> int:
@@ -66,6 +76,7 @@ class PersonData:
             self.camera.to(device=device),
             None if self.uncertain is None else [u.to(device) for u in self.uncertain],
             self.silhouettes,  # read on the host only (the limbs' crossings), so kept there
+            None if self.normals is None else [n.to(device) for n in self.normals],
         )
 
     def subset(self, index: list[int] | torch.Tensor) -> PersonData:
@@ -80,6 +91,7 @@ class PersonData:
             None
             if self.silhouettes is None
             else {k: m[idx.to(m.device)] for k, m in self.silhouettes.items()},
+            None if self.normals is None else [n[idx] for n in self.normals],
         )
 
 
@@ -92,6 +104,7 @@ def person_data_from_masks(
     uncertain: torch.Tensor | None = None,
     margin_px: int = 2,
     crop_margin_px: int | None = None,
+    normals: bool = False,
 ) -> PersonData:
     """Person contours and distance maps from silhouettes.
 
@@ -115,6 +128,8 @@ def person_data_from_masks(
             between two pixels of a box does not leave it); outside, a pixel takes the box
             edge's value plus its Euclidean distance to the box, a bound that keeps growing
             away from the person. For a tracker, whose model stays near the silhouette.
+        normals: also give each contour pixel's outward normal (:attr:`PersonData.normals`),
+            from the whole traced outline before ``stride`` thins it.
 
     Returns:
         :class:`PersonData`; an empty silhouette gives an empty contour and a map of large
@@ -138,7 +153,7 @@ def person_data_from_masks(
         near = torch.nn.functional.max_pool2d(
             uncertain.float(), k_size, stride=1, padding=margin_px
         ).bool()
-    contours, valid, maps = [], [], []
+    contours, valid, maps, outward = [], [], [], []
     for k in range(n_pose):
         outlines = [trace_outer_contour(masks[i, k]) for i in range(b)]
         traced = [c[::stride] for c in outlines]
@@ -153,6 +168,12 @@ def person_data_from_masks(
                 ok[i, : len(c)] &= ~near[i, k, c[:, 1], c[:, 0]]
         contours.append(pts)
         valid.append(ok)
+        if normals:
+            nrm = torch.zeros(b, n, 2, dtype=torch.float32)
+            for i, c in enumerate(outlines):
+                along = contour_normals(c)[::stride]
+                nrm[i, : len(along)] = along
+            outward.append(nrm)
         # D_P's seeds are the traced outlines (what mask_to_distance_map would trace again)
         # less the image frame's pixels
         inner = [c[~on_image_frame(c, w, h)] for c in outlines]
@@ -163,7 +184,7 @@ def person_data_from_masks(
             dmap = _cropped_distance_map(masks[:, k], seeds, method, crop_margin_px)
         maps.append(torch.nan_to_num(dmap, posinf=float(h + w)))
     flags = None if uncertain is None else [uncertain[:, k] for k in range(n_pose)]
-    return PersonData(contours, valid, maps, camera, flags)
+    return PersonData(contours, valid, maps, camera, flags, None, outward if normals else None)
 
 
 def _cropped_distance_map(

@@ -190,6 +190,7 @@ class SilhouetteFit:
     def _choose(self, full: torch.Tensor, rows: torch.Tensor) -> dict[int, ContourSelection]:
         """:meth:`select`'s choice, made (a subclass adds to it)."""
         posed = self.poser.world_postures(full, list(self.poses), rows)
+        normals = self.person.normals
         chosen = select_contours(
             self.sampler,
             [self.project(posed[k], rows) for k in range(len(self.poses))],
@@ -197,6 +198,9 @@ class SilhouetteFit:
             [self.person.valid[k][rows] for k in range(len(self.poses))],
             self.camera.image_size,
             self.options.contour_tolerance_px,
+            None if normals is None else [n[rows] for n in normals],
+            # in reference pixels (FitOptions.reference_px_per_m), as a limb's width
+            [self.options.contour_orientation_px / self.image_scale[rows]] * len(self.poses),
         )
         return dict(zip(self.poses, chosen, strict=True))
 

@@ -23,6 +23,7 @@ from torchfit.image.background import (
 )
 from torchfit.image.contours import (
     contour_mask,
+    contour_normals,
     outer_contours,
     outline_mask,
     trace_outer_contour,
@@ -92,6 +93,7 @@ __all__ = [
     "outer_contours",
     "contour_mask",
     "outline_mask",
+    "contour_normals",
     "chamfer_distance_transform",
     "euclidean_distance_transform",
     "distance_map",

@@ -21,6 +21,7 @@ __all__ = [
     "contour_mask",
     "outline_mask",
     "on_image_frame",
+    "contour_normals",
 ]
 
 # The 8 neighbours, clockwise on screen (v down): E, SE, S, SW, W, NW, N, NE, as (du, dv).
@@ -147,3 +148,29 @@ def on_image_frame(pixels, width: int, height: int):
     not the silhouette's. Returns an ``(N,)`` bool of the same kind."""
     u, v = pixels[:, 0], pixels[:, 1]
     return (u <= 0) | (u >= width - 1) | (v <= 0) | (v >= height - 1)
+
+
+def contour_normals(contour: torch.Tensor, span: int = 3) -> torch.Tensor:
+    """Unit outward normals of an ordered outer contour (:func:`trace_outer_contour`'s order).
+
+    The tangent at pixel ``i`` is ``contour[i + span] - contour[i - span]`` (cyclically); the
+    trace runs counter-clockwise on screen (``v`` down), so the outward normal is the tangent
+    turned a quarter clockwise on screen, ``(-t_v, t_u)``. Where the tangent vanishes (a spur
+    walked out and back), the normal is zero.
+
+    Args:
+        contour: ``(N, 2)`` ordered ``(u, v)`` pixels.
+        span: half the tangent's base, in contour pixels.
+
+    Returns:
+        ``(N, 2)`` float32 unit normals (zero where undefined).
+    """
+    check_shape("contour", contour, ("N", 2))
+    c = contour.to(torch.float32)
+    if c.shape[0] < 3:
+        return torch.zeros_like(c)
+    s = min(span, (c.shape[0] - 1) // 2)
+    t = torch.roll(c, -s, 0) - torch.roll(c, s, 0)
+    n = torch.stack([-t[:, 1], t[:, 0]], 1)
+    norm = n.norm(dim=1, keepdim=True)
+    return torch.where(norm > 0, n / norm.clamp_min(1e-12), torch.zeros_like(n))

@@ -376,6 +376,7 @@ def person_data(
         dtype,
         shadow if use_shadow else None,
         config.fit.shadow_margin_px,
+        normals=config.fit.contour_orientation_px > 0,
     )
     if config.fit.bends.weight > 0:
         marked = {b.posture for b in parse_bends(config.fit.bends.joints)}
