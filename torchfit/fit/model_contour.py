@@ -286,11 +286,11 @@ def select_contours(
         contours, valid = contours.cpu().numpy(), valid.cpu().numpy()
         normals = None if normals is None else normals.cpu().numpy()
         lam = lam.detach().cpu().double().numpy()
-        items += [
-            (px[i], contours[i], valid[i], None if normals is None or lam[i] <= 0 else normals[i])
-            + (float(lam[i]),)
-            for i in range(px.shape[0])
-        ]
+        for i in range(px.shape[0]):
+            weighed = normals is not None and lam[i] > 0
+            items.append(
+                (px[i], contours[i], valid[i], normals[i] if weighed else None, float(lam[i]))
+            )
     chosen = map_chunks(_choose, items, (sampler, image_size, tolerance))
     out, at = [], 0
     for px, contours in zip(pixels, person_contours, strict=True):
